@@ -11,12 +11,12 @@ from .camera import Attitude, Intrinsics, Mount
 from .contract import DepthConvention, DepthSpec, HvoSpec, InputSpec, Layout, ModelContract, Task
 from .errors import ContractError, EdgeError, InputError, SceneError
 from .inference import OnnxModel, SessionConfig
-from .messages import Frame, Prediction, Target
+from .messages import Frame, Prediction, Target, VehicleState
 from .scene import Pose, Scene, SceneMeta, SceneWriter
 
 __all__ = [
     "Attitude", "Intrinsics", "Mount", "DepthConvention", "DepthSpec", "HvoSpec", "InputSpec", "Layout",
     "ModelContract", "Task", "ContractError", "EdgeError", "InputError", "SceneError", "OnnxModel",
-    "SessionConfig", "Frame", "Prediction", "Target", "Pose", "Scene", "SceneMeta", "SceneWriter",
+    "SessionConfig", "Frame", "Prediction", "Target", "VehicleState", "Pose", "Scene", "SceneMeta", "SceneWriter",
 ]
 __version__ = "0.1.0"

@@ -10,6 +10,8 @@ from typing import Optional
 
 import numpy as np
 
+from .camera import Attitude
+
 
 @dataclass(frozen=True)
 class Frame:
@@ -69,3 +71,19 @@ class Target:
     def none(frame_id: int, capture_time_s: float, reason: str, timings_s: Optional[dict] = None) -> "Target":
         """No target for this frame, and why."""
         return Target(frame_id, capture_time_s, False, reason, timings_s=dict(timings_s or {}))
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Telemetry matched to a frame's capture time (DESIGN.md §3: matched to capture, not to inference end).
+
+    ``attitude``: body FRD relative to local NED (radians). ``position_ned_m``: vehicle local NED position
+    (metres) or None. ``agl_m``: height above ground (rangefinder, or relative altitude over flat terrain) or
+    None; ``agl_source`` says which.
+    """
+
+    time_s: float
+    attitude: Attitude = Attitude()
+    position_ned_m: Optional[np.ndarray] = None
+    agl_m: Optional[float] = None
+    agl_source: str = ""
