@@ -116,6 +116,9 @@ def export_onnx(spec: ArchSpec, task: Optional[Task | str], out_path: os.PathLik
         raise InputError(f"opset {settings.opset} is not supported; expected 7..{MAX_OPSET}")
     check_input_size(spec, height, width)
     opts = check_options(spec, options)
+    # Build the contract first: it validates architecture-specific size rules (e.g. AdaBins' patch count)
+    # before seconds are spent building a large network.
+    base_contract = spec.contract(task, height, width, **opts)
     out_path = Path(out_path)
     if checkpoint is not None and not Path(checkpoint).is_file():
         raise InputError(f"checkpoint {checkpoint} does not exist")
@@ -132,7 +135,7 @@ def export_onnx(spec: ArchSpec, task: Optional[Task | str], out_path: os.PathLik
         with trusted_checkpoints(settings.trust_checkpoint):
             source = _load_weights(spec, model, checkpoint)
         steps.update(1)
-        contract = replace(spec.contract(task, height, width, **opts), source=source)
+        contract = replace(base_contract, source=source)
         x = torch.zeros(_input_shape(contract), dtype=torch.float32)
         names = tuple(spec.output_names(task))
         exporter = _torch_export(model, x, tmp, contract.input.name, names, settings.opset)

@@ -1,0 +1,244 @@
+"""edge-sim: geometric truth of the rendered scenes, determinism, flight video, live camera and CLI errors."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("embreex")
+
+from edge_runtime.camera import Attitude, Intrinsics, Mount, ned_from_camera, up_in_camera  # noqa: E402
+from edge_runtime.geometry import hvo_from_normals, normals_from_depth  # noqa: E402
+from edge_runtime.scene import Scene  # noqa: E402
+
+import sim  # noqa: E402
+from sim.cli import main as sim_main  # noqa: E402
+from sim.world import Material  # noqa: E402
+
+H, W = 60, 80
+SEED = 11          # one seed for most tests: each world is built once per process (cached)
+
+
+@pytest.fixture(scope="module", params=["suburban", "urban"])
+def scene_dir(request, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp(f"sim_{request.param}") / "scene"
+    sim.generate(sim.SimConfig(out=out, frames=4, style=sim.Style.from_string(request.param), seed=SEED,
+                               width=W, height=H), progress=False)
+    return out
+
+
+def _world_points(scene: Scene, fid: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Back-project a frame's depth with scene.json intrinsics and the poses.csv pose: (points NED, R, origin)."""
+    pose = scene.poses()[fid]
+    rot = ned_from_camera(scene.meta.mount, Attitude(pose.roll_rad, pose.pitch_rad, pose.yaw_rad))
+    cam = scene.meta.intrinsics.backproject(scene.read_depth(fid)).astype(np.float64)
+    return cam @ rot.T + np.asarray(pose.ned_m), rot, np.asarray(pose.ned_m)
+
+
+def test_backprojected_depth_lies_on_the_rendered_surfaces(scene_dir):
+    scene = Scene(scene_dir)
+    world = sim.build_world(scene.meta.generator["style"], scene.meta.generator["seed"])
+    for fid in scene.frame_ids:
+        pts, rot, _ = _world_points(scene, fid)
+        n_world = scene.read_normals(fid).astype(np.float64) @ rot.T
+        ok = np.isfinite(pts[..., 0])
+        assert ok.mean() > 0.9
+        # Re-cast a ray from 0.5 m off the surface, back along the normal: it must hit 0.5 m away.
+        p, n = pts[ok], n_world[ok] / np.linalg.norm(n_world[ok], axis=1, keepdims=True)
+        t, tri = world.intersect(p + 0.5 * n, -n)
+        assert np.all(tri >= 0)
+        err = np.abs(t - 0.5)
+        assert np.median(err) < 2e-3 and np.mean(err < 0.02) > 0.99, (fid, np.percentile(err, [50, 99]))
+
+
+def test_normals_and_labels_agree_with_depth_on_interior_pixels(scene_dir):
+    from scipy.ndimage import binary_erosion
+
+    scene = Scene(scene_dir)
+    up = None
+    agree_n, agree_l, total = 0, 0, 0
+    for fid, pose in scene.poses().items():
+        intr = scene.meta.intrinsics
+        normals = scene.read_normals(fid)
+        up = up_in_camera(scene.meta.mount, Attitude(pose.roll_rad, pose.pitch_rad, pose.yaw_rad))
+        from_depth = normals_from_depth(scene.read_depth(fid), intr)
+        labels = scene.read_hvo(fid)
+        # Interior: the stored normal is the same over the 3×3 neighbourhood (one planar surface).
+        same = np.ones(labels.shape, bool)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                same &= np.sum(normals * np.roll(normals, (dy, dx), axis=(0, 1)), axis=-1) > math.cos(math.radians(1))
+        interior = binary_erosion(same, iterations=1, border_value=0) & np.isfinite(from_depth[..., 0])
+        cos = np.sum(from_depth[interior] * normals[interior], axis=-1)
+        agree_n += int(np.sum(cos > math.cos(math.radians(3.0))))
+        derived = hvo_from_normals(from_depth, up, scene.meta.hvo_thresholds)
+        agree_l += int(np.sum(derived[interior] == labels[interior]))
+        total += int(interior.sum())
+    assert total > 1000
+    assert agree_n / total > 0.97, agree_n / total
+    assert agree_l / total > 0.97, agree_l / total
+
+
+def test_labels_match_the_recipe_and_sky_is_nan_and_255():
+    world = sim.build_world("suburban", SEED)
+    renderer = sim.Renderer(world, Intrinsics.from_hfov(W, H))
+    view = sim.random_view(world, np.random.default_rng(3))
+    # Nose up 40°: the camera looks 5° above the horizon, so the upper part of the image is sky.
+    att = Attitude(0.0, math.radians(40.0), view.attitude.yaw_rad)
+    out = renderer.render(view.position_ned_m, att, sim.Effects(), np.random.default_rng(0))
+    g = out.geometry
+    sky = ~np.isfinite(g.depth_m)
+    assert 0.1 < sky.mean() < 0.9
+    assert np.all(g.hvo[sky] == 255) and np.all(np.isnan(g.normals[sky])) and np.all(g.material[sky] == 255)
+    assert np.all(g.hvo[~sky] != 255) and np.all(g.depth_m[~sky] > 0)
+    assert np.mean(out.rgb[sky][:, 2]) > np.mean(out.rgb[sky][:, 0])          # sky is blue-ish
+    assert np.array_equal(g.hvo, hvo_from_normals(g.normals, up_in_camera(Mount(), att)) | (sky * 255).astype(np.uint8))
+    # Normals face the camera.
+    assert np.all(np.sum(g.normals[~sky] * Intrinsics.from_hfov(W, H).pixel_rays()[~sky], axis=-1) < 0)
+
+
+def test_views_are_30_to_90_m_up_with_the_camera_45_degrees_down():
+    world = sim.build_world("urban", SEED)
+    r45 = math.sin(math.radians(45.0))
+    agls = []
+    for k in range(200):
+        v = sim.random_view(world, np.random.default_rng([7, k]))
+        assert 30.0 <= v.agl_m <= 90.0
+        below = world.surface_z(np.array([v.position_ned_m[0]]), np.array([v.position_ned_m[1]]))[0]
+        assert below - v.position_ned_m[2] == pytest.approx(v.agl_m, abs=1e-3)
+        axis = ned_from_camera(Mount(), v.attitude) @ np.array([0.0, 0.0, 1.0])
+        assert axis[2] == pytest.approx(r45, abs=1e-9)                         # optical axis 45° below horizon
+        assert v.attitude.roll_rad == 0.0 and v.attitude.pitch_rad == 0.0
+        agls.append(v.agl_m)
+    assert min(agls) < 40 and max(agls) > 80
+
+
+def test_scene_files_follow_the_contract(scene_dir):
+    scene = Scene(scene_dir)
+    meta = scene.meta
+    assert (meta.intrinsics.width, meta.intrinsics.height) == (W, H)
+    assert meta.mount.pitch_rad == pytest.approx(-math.pi / 4)
+    assert meta.frame_count == 4 and len(scene) == 4
+    gen = meta.generator
+    assert gen["name"] == "edge-sim" and gen["seed"] == SEED and gen["version"] == sim.__version__
+    assert len(gen["per_frame_effects"]) == 4 and "effects" in gen
+    for fid in scene.frame_ids:
+        assert scene.read_rgb(fid).shape == (H, W, 3)
+        d = np.load(scene_dir / "depth" / f"{fid}.npy")
+        assert d.dtype == np.float32 and d.shape == (H, W)
+        assert set(np.unique(scene.read_hvo(fid))) <= {0, 1, 2, 255}
+        assert np.load(scene_dir / "normals" / f"{fid}.npy").dtype == np.float16
+    poses = scene.poses()
+    assert [p.t_s for p in poses.values()] == pytest.approx([0.0, 0.1, 0.2, 0.3])
+
+
+def test_same_seed_gives_identical_files_and_styles_differ(tmp_path):
+    def files(root: Path) -> dict:
+        return {p.relative_to(root): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+    cfg = dict(frames=2, style=sim.Style.URBAN, seed=SEED, width=W, height=H)
+    a = files(sim.generate(sim.SimConfig(out=tmp_path / "a", **cfg), progress=False))
+    b = files(sim.generate(sim.SimConfig(out=tmp_path / "b", **cfg), progress=False))
+    assert a == b and len(a) >= 9
+    c = files(sim.generate(sim.SimConfig(out=tmp_path / "c", **{**cfg, "seed": SEED + 1}), progress=False))
+    assert c[Path("rgb/000000.png")] != a[Path("rgb/000000.png")]
+
+
+def test_worlds_have_the_style_features():
+    sub, urb = sim.build_world("suburban", SEED), sim.build_world("urban", SEED)
+    assert {Material.ROOF_TILE, Material.WALL, Material.FOLIAGE, Material.CAR_PAINT} <= set(np.unique(sub.material))
+    assert {Material.FACADE, Material.ROOF_FLAT, Material.CLUTTER, Material.CAR_PAINT} <= set(np.unique(urb.material))
+    assert sim.build_world("suburban", SEED) is sub                                # cached
+    assert np.abs(sub.terrain.z).max() < 5.0                                   # ground near z = 0
+    assert set(np.unique(sub.ground.cells)) >= {Material.GRASS, Material.ASPHALT, Material.MARKING, Material.CONCRETE}
+
+
+def test_flight_writes_a_video_and_descends(tmp_path):
+    import cv2
+
+    out = sim.generate(sim.SimConfig(out=tmp_path / "f", frames=12, seed=SEED, width=64, height=48, flight=True,
+                                     preview=True), progress=False)
+    cap = cv2.VideoCapture(str(out / "flight.mp4"))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    assert n == 12
+    poses = list(Scene(out).poses().values())
+    assert poses[-1].agl_m < poses[0].agl_m - 30 and poses[-1].agl_m > 5
+    assert (out / "preview.png").stat().st_size > 0
+    # The live camera flies the same flight: its first frame is the scene's first frame.
+    rgb, pose, _ = sim.SimCamera(style="suburban", seed=SEED, width=64, height=48, flight_frames=12).read()
+    assert np.array_equal(rgb, Scene(out).read_rgb("000000")) and pose.ned_m == pytest.approx(poses[0].ned_m)
+
+
+def test_sim_camera_reads_frames_with_pose_and_state():
+    cam = sim.SimCamera(style="suburban", seed=SEED, width=64, height=48, fps=5.0, flight_frames=4)
+    times = []
+    for _ in range(5):                                   # runs past the flight's end: it restarts
+        rgb, pose, state = cam.read()
+        assert rgb.shape == (48, 64, 3) and rgb.dtype == np.uint8
+        assert state.time_s == pose.t_s and state.agl_m == pose.agl_m and state.agl_source == "sim"
+        times.append(state.time_s)
+    assert np.all(np.diff(times) == pytest.approx(0.2))
+    truth = cam.read_truth()
+    assert truth.geometry.depth_m.shape == (48, 64)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--frames", "-3"], "--frames must be at least 1"),
+    (["--style", "desert"], "unknown world style 'desert'"),
+    (["--rain", "2"], "--rain must be between 0 and 1"),
+    (["--frames", "two"], "invalid int value"),
+])
+def test_bad_arguments_give_one_clear_line(tmp_path, capsys, args, needle):
+    code = sim_main([str(tmp_path / "out"), *args, "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and needle in err[0], err
+
+
+def test_unwritable_output_is_a_clear_error(tmp_path, capsys):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("x")
+    assert sim_main([str(blocker / "scene"), "--frames", "1", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scene" in err[0]
+    assert sim_main([str(blocker), "--frames", "1", "--quiet"]) == 2
+    assert "not a folder" in capsys.readouterr().err
+
+
+def test_cli_writes_a_scene_and_refuses_to_clobber_it(tmp_path, capsys):
+    out = tmp_path / "cli"
+    assert sim_main([str(out), "--frames", "1", "--width", "40", "--height", "30", "--seed", str(SEED), "--clear",
+                     "--quiet"]) == 0
+    assert Scene(out).meta.generator["effects"]["rain"] == 0.0
+    assert sim_main([str(out), "--frames", "1", "--width", "40", "--height", "30", "--quiet"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+
+
+def test_effects_change_the_image_but_never_the_ground_truth():
+    world = sim.build_world("suburban", SEED)
+    renderer = sim.Renderer(world, Intrinsics.from_hfov(W, H))
+    view = sim.random_view(world, np.random.default_rng(8))
+    clean = sim.Effects(haze_per_m=0.0, noise_sigma=0.0)
+    foggy = sim.Effects(haze_per_m=0.01, rain=0.8, motion_blur_px=5.0, noise_sigma=0.02, exposure_ev=0.5)
+    a = renderer.render(view.position_ned_m, view.attitude, clean, np.random.default_rng(0))
+    b = renderer.render(view.position_ned_m, view.attitude, foggy, np.random.default_rng(0))
+    for name in ("depth_m", "normals", "hvo", "material"):
+        assert np.array_equal(getattr(a.geometry, name), getattr(b.geometry, name), equal_nan=name != "hvo")
+    # Fog washes distant pixels out: less contrast in the far (top) rows.
+    assert b.rgb[: H // 4].std() < a.rgb[: H // 4].std()
+    # The sun sets the shading: lit and shadowed views of one pose differ.
+    low_sun = sim.Effects(haze_per_m=0.0, noise_sigma=0.0, sun_elevation_rad=math.radians(10.0))
+    c = renderer.render(view.position_ned_m, view.attitude, low_sun, np.random.default_rng(0))
+    assert np.mean(np.abs(c.rgb.astype(int) - a.rgb.astype(int))) > 5
+
+
+def test_effect_overrides_fix_values_and_the_rest_stay_seeded():
+    fixed = sim.EffectOverrides(rain=0.0, noise_sigma=0.005)
+    draws = [sim.sample_effects(np.random.default_rng(k), fixed) for k in range(20)]
+    assert all(d.rain == 0.0 and d.noise_sigma == 0.005 for d in draws)
+    assert len({d.sun_azimuth_rad for d in draws}) == 20
+    assert sim.sample_effects(np.random.default_rng(3)) == sim.sample_effects(np.random.default_rng(3))
+    assert all(15.0 <= math.degrees(d.sun_elevation_rad) <= 75.0 for d in draws)
