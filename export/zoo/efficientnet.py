@@ -122,6 +122,11 @@ def make_conv(in_channels: int, out_channels: int, kernel: int, stride: int = 1,
     return Conv2dSame(in_channels, out_channels, kernel, stride=stride, groups=groups, bias=bias)
 
 
+def _se_channels(in_channels: int, se_ratio: float) -> int:
+    # The ports round half up (make_divisible with divisor 1: int(v + 0.5)), not Python's half-to-even round().
+    return max(1, int(in_channels * se_ratio + 0.5))
+
+
 class SqueezeExcite(nn.Module):
     """Channel gate: global mean -> 1×1 reduce -> swish -> 1×1 expand -> sigmoid (convs with bias)."""
 
@@ -144,7 +149,7 @@ class DepthwiseSeparable(nn.Module):
         self.conv_dw = make_conv(in_channels, in_channels, kernel, stride, groups=in_channels,
                                  tf_same=cfg.tf_same_padding)
         self.bn1 = nn.BatchNorm2d(in_channels, eps=cfg.bn_eps)
-        self.se = SqueezeExcite(in_channels, max(1, round(in_channels * cfg.se_ratio)))
+        self.se = SqueezeExcite(in_channels, _se_channels(in_channels, cfg.se_ratio))
         self.conv_pw = nn.Conv2d(in_channels, out_channels, 1, bias=False)
         self.bn2 = nn.BatchNorm2d(out_channels, eps=cfg.bn_eps)
 
@@ -167,7 +172,7 @@ class InvertedResidual(nn.Module):
         self.conv_dw = make_conv(mid, mid, kernel, stride, groups=mid, tf_same=cfg.tf_same_padding)
         self.bn2 = nn.BatchNorm2d(mid, eps=cfg.bn_eps)
         # The SE bottleneck is sized from the block's input, not from the expanded width.
-        self.se = SqueezeExcite(mid, max(1, round(in_channels * cfg.se_ratio)))
+        self.se = SqueezeExcite(mid, _se_channels(in_channels, cfg.se_ratio))
         self.conv_pwl = nn.Conv2d(mid, out_channels, 1, bias=False)
         self.bn3 = nn.BatchNorm2d(out_channels, eps=cfg.bn_eps)
 

@@ -93,7 +93,8 @@ class UpConv(nn.Module):
 
 
 class DilatedBottleneck(nn.Module):
-    """Six serial dilated 3×3 convs (256→512, then 512→512), outputs concatenated (3072 ch), then UpConv."""
+    """Six serial dilated 3×3 convs (256→512, then 512→512), outputs concatenated (3072 ch), UpConv, then
+    concatenated after the skip: cat([skip, up]) as the authors' ConcatenateBlock does."""
 
     def __init__(self, c_in: int, width: int, c_out: int):
         super().__init__()
@@ -101,12 +102,13 @@ class DilatedBottleneck(nn.Module):
             [_conv3(c_in if i == 0 else width, width, dilation=d) for i, d in enumerate(DILATIONS)])
         self.finalLayer = UpConv(width * len(DILATIONS), c_out)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
         outs = []
         for conv in self.dilateLayers:
             x = F.relu(conv(x))
             outs.append(x)
-        return self.finalLayer(torch.cat(outs, dim=1))
+        # The authors concatenate [skip, upsampled] (skip channels first); the order matters to the weights.
+        return torch.cat([skip, self.finalLayer(torch.cat(outs, dim=1))], dim=1)
 
 
 class SafeUAVLarge(_NhwcNet):
@@ -129,10 +131,10 @@ class SafeUAVLarge(_NhwcNet):
         d1 = self.downBlock1(x)
         d2 = self.downBlock2(F.max_pool2d(d1, 2))
         d3 = self.downBlock3(F.max_pool2d(d2, 2))
-        y = self.bottleneck(F.max_pool2d(d3, 2))
-        y = self.upBlock3(torch.cat([y, d3], dim=1))
-        y = self.upBlock2(torch.cat([self.up2(y), d2], dim=1))
-        y = self.upBlock1(torch.cat([self.up1(y), d1], dim=1))
+        y = self.upBlock3(self.bottleneck(F.max_pool2d(d3, 2), d3))
+        # neural-wrappers' ConcatenateBlock: cat([x_down, y_up]) -- the skip comes first.
+        y = self.upBlock2(torch.cat([d2, self.up2(y)], dim=1))
+        y = self.upBlock1(torch.cat([d1, self.up1(y)], dim=1))
         return self.finalConv(y)
 
 
