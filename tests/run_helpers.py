@@ -1,0 +1,146 @@
+"""Helpers for the streaming-runtime tests: a flat-ground ONNX model, a small video, a loopback autopilot."""
+from __future__ import annotations
+
+import math
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import List, Optional
+
+import cv2
+import numpy as np
+
+from edge_runtime.camera import Intrinsics, Mount
+from edge_runtime.contract import DepthConvention, DepthSpec, HvoSpec, InputSpec, Layout, ModelContract, Task
+
+
+def ground_plane_depth(height: int, width: int, agl_m: float, mount: Mount = Mount(),
+                       hfov_rad: float = math.radians(90.0)) -> np.ndarray:
+    """Planar z-depth of flat ground ``agl_m`` below a level camera with this mount (NaN above the horizon)."""
+    k = Intrinsics.from_hfov(width, height, hfov_rad)
+    rays = k.pixel_rays().reshape(-1, 3).astype(np.float64)
+    down = (mount.body_from_camera() @ rays.T)[2]  # body z = down when level
+    with np.errstate(divide="ignore"):
+        z = np.where(down > 1e-6, agl_m / down, np.nan)
+    return z.reshape(height, width).astype(np.float32)
+
+
+def flat_ground_model(path: Path, height: int = 48, width: int = 64, agl_m: float = 10.0) -> Path:
+    """A real ONNX graph whose depth is a flat ground plane ``agl_m`` below the camera and whose HVO logits
+    say 'horizontal' everywhere, whatever the image (0 × input keeps the input in the graph)."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    plane = ground_plane_depth(height, width, agl_m)[None, None]
+    logits = np.zeros((1, 3, height, width), np.float32)
+    logits[:, 0] = 8.0
+    inits = [numpy_helper.from_array(plane, "plane"), numpy_helper.from_array(logits, "logits"),
+             numpy_helper.from_array(np.zeros((), np.float32), "zero")]
+    nodes = [helper.make_node("ReduceMean", ["image"], ["mean"], axes=[1], keepdims=1),
+             helper.make_node("Mul", ["mean", "zero"], ["nothing"]),
+             helper.make_node("Add", ["plane", "nothing"], ["depth"]),
+             helper.make_node("Add", ["logits", "nothing"], ["hvo_logits"])]
+    graph = helper.make_graph(
+        nodes, "flat_ground", [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, height, width])],
+        [helper.make_tensor_value_info("depth", TensorProto.FLOAT, [1, 1, height, width]),
+         helper.make_tensor_value_info("hvo_logits", TensorProto.FLOAT, [1, 3, height, width])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    contract = ModelContract(arch="flat-ground-test", task=Task.DEPTH_HVO,
+                             input=InputSpec(name="image", layout=Layout.NCHW, height=height, width=width),
+                             depth=DepthSpec("depth", DepthConvention.METRIC, 0.5, 200.0),
+                             hvo=HvoSpec("hvo_logits", Layout.NCHW), source={"note": "flat ground test model"})
+    for k, v in contract.to_metadata().items():
+        model.metadata_props.add(key=k, value=v)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    return path
+
+
+def write_video(path: Path, frames: int = 12, height: int = 96, width: int = 128, fourcc: str = "MJPG",
+                fps: float = 10.0) -> Path:
+    """A small textured video written with OpenCV (MJPG in .avi survives truncation frame by frame)."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), fps, (width, height))
+    assert writer.isOpened(), f"OpenCV cannot write {path}"
+    rng = np.random.default_rng(0)
+    base = rng.integers(60, 200, size=(height, width, 3), dtype=np.uint8)
+    for i in range(frames):
+        img = np.roll(base, i, axis=1)
+        cv2.putText(img, str(i), (5, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1)
+        writer.write(img)
+    writer.release()
+    return path
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class LoopbackAutopilot:
+    """A pymavlink peer on ``udpin:127.0.0.1:PORT``: records every message; optionally plays an autopilot
+    (HEARTBEAT + ATTITUDE + LOCAL_POSITION_NED + GLOBAL_POSITION_INT at ``rate_hz``) once edge-run is heard."""
+
+    def __init__(self, port: int, telemetry: bool = False, position_ned=(5.0, -3.0, -10.0), yaw_rad: float = 0.0,
+                 rate_hz: float = 50.0):
+        from edge_runtime.mavlink_link import load_mavutil
+
+        self.mavutil = load_mavutil()
+        self.conn = self.mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1, source_component=1)
+        self.telemetry, self.position_ned, self.yaw_rad, self.rate_hz = telemetry, position_ned, yaw_rad, rate_hz
+        self.messages: List = []
+        self.arrivals: List[float] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._t0 = time.monotonic()
+
+    def __enter__(self) -> "LoopbackAutopilot":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(timeout=3)
+        self.conn.close()
+
+    def of_type(self, kind: str) -> list:
+        return [m for m in list(self.messages) if m.get_type() == kind]
+
+    def _run(self) -> None:
+        m = self.mavutil.mavlink
+        next_send = 0.0
+        while not self._stop.is_set():
+            msg = self.conn.recv_match(blocking=True, timeout=0.01)
+            if msg is not None and msg.get_type() != "BAD_DATA":
+                self.messages.append(msg)
+                self.arrivals.append(time.monotonic())
+            now = time.monotonic()
+            if self.telemetry and self.conn.clients and now >= next_send:
+                next_send = now + 1.0 / self.rate_hz
+                boot_ms = int((now - self._t0) * 1000)
+                n, e, d = self.position_ned
+                self.conn.mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_PX4, 0, 0, m.MAV_STATE_ACTIVE)
+                self.conn.mav.attitude_send(boot_ms, 0.0, 0.0, self.yaw_rad, 0.0, 0.0, 0.0)
+                self.conn.mav.local_position_ned_send(boot_ms, n, e, d, 0.0, 0.0, 0.0)
+                self.conn.mav.global_position_int_send(boot_ms, 0, 0, 0, int(-d * 1000), 0, 0, 0, 0)
+
+
+def wait_for(predicate, timeout_s: float = 10.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return predicate()
+
+
+def last(items: list) -> Optional[object]:
+    return items[-1] if items else None

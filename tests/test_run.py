@@ -1,0 +1,144 @@
+"""edge-run end to end: real ONNX Runtime, real video files, real overlay video, SIGINT, bad input."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import pytest
+
+from edge_runtime.calibration_file import SceneCalibration
+from edge_runtime.contract import Task
+from edge_runtime.inference import file_sha256
+from edge_runtime.run_cli import main
+from tests.helpers import tiny_onnx_model
+from tests.run_helpers import flat_ground_model, write_video
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def assets(tmp_path_factory):
+    d = tmp_path_factory.mktemp("run")
+    return {"model": str(flat_ground_model(d / "flat.onnx", agl_m=10.0)), "video": str(write_video(d / "v.avi", 10)),
+            "dir": d}
+
+
+def test_video_run_logs_every_decision_records_overlay_and_prints_summary(assets, tmp_path, capsys):
+    log_path, rec = tmp_path / "targets.jsonl", tmp_path / "overlay.mp4"
+    assert main(["--camera", assets["video"], "--model", assets["model"], "--log", str(log_path),
+                 "--record", str(rec), "--vehicle-radius", "0.5", "--margin", "0.5"]) == 0
+    out = capsys.readouterr().out
+    assert "pipeline images/s" in out and "model-only images/s" in out and "stopped by end of input" in out
+    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    assert [d["frame"] for d in decisions] == list(range(10))
+    assert all(d["valid"] and d["reason"] == "ok" and d["clearance_m"] >= 1.0 for d in decisions)
+    assert all(d["body_frd_m"][0] > 0 and abs(d["body_frd_m"][2] - 10.0) < 0.3 for d in decisions)
+    cap = cv2.VideoCapture(str(rec))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 10
+    ok, img = cap.read()
+    assert ok and img.shape == (96, 128, 3)
+
+
+def test_max_frames_and_calibration_scale(assets, tmp_path):
+    model = flat_ground_model(tmp_path / "half.onnx", agl_m=5.0)  # predicts half the true distance
+    cal = SceneCalibration(2.0, 0.01, 1.98, 2.02, 5, 5, file_sha256(model), str(model), "scene", "now", 0.5, 200.0)
+    cal_path = cal.save(tmp_path / "calibration.json")
+    log_path = tmp_path / "t.jsonl"
+    assert main(["--camera", assets["video"], "--model", str(model), "--calibration", str(cal_path),
+                 "--max-frames", "4", "--log", str(log_path)]) == 0
+    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    assert len(decisions) == 4
+    assert all(d["scale"] == 2.0 and d["scale_source"] == "calibration" for d in decisions)
+    assert all(abs(d["body_frd_m"][2] - 10.0) < 0.3 for d in decisions)
+
+
+def test_depth_and_hvo_model_pair(assets, tmp_path):
+    depth = tiny_onnx_model(tmp_path / "d.onnx", task=Task.DEPTH, height=24, width=32)
+    hvo = tiny_onnx_model(tmp_path / "h.onnx", task=Task.HVO, height=12, width=16)
+    log_path = tmp_path / "t.jsonl"
+    assert main(["--camera", assets["video"], "--depth-model", str(depth), "--hvo-model", str(hvo),
+                 "--max-frames", "3", "--log", str(log_path)]) == 0
+    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    assert len(decisions) == 3 and all(d["reason"] for d in decisions)  # a decision and its reason, every frame
+
+
+def test_truncated_video_ends_cleanly(assets, tmp_path, capsys):
+    path = write_video(tmp_path / "t.avi", 30)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    assert main(["--camera", str(path), "--model", assets["model"]]) == 0
+    captured = capsys.readouterr()
+    assert "stopped by end of input" in captured.out
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--camera", "/dev/video93"], "/dev/video93 not found"),
+    (["--model", "missing.onnx"], "does not exist"),
+    (["--depth-model", "x.onnx"], "not both"),
+    (["--autopilot", "betaflight"], "ardupilot, px4"),
+    (["--mav", "carrier-pigeon"], "unsupported MAVLink connection"),
+    (["--vehicle-radius", "-1"], "--vehicle-radius"),
+    (["--mav", "/dev/ttyUSB0,fast"], "bad baud rate"),
+    (["--record", "/nonexistent/dir/o.mp4"], "does not exist"),
+])
+def test_bad_input_is_one_line_and_exit_2(assets, args, message, capsys):
+    argv = ["--camera", assets["video"], "--model", assets["model"]]
+    argv += args
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+
+
+def test_serial_link_without_pyserial_is_one_line(assets, capsys):
+    pytest.importorskip("pymavlink")
+    try:
+        import serial  # noqa: F401
+        pytest.skip("pyserial is installed here")
+    except ImportError:
+        pass
+    assert main(["--camera", assets["video"], "--model", assets["model"], "--mav", "/dev/ttyUSB9,57600"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pip install pyserial" in err[0]
+
+
+def test_model_without_contract_is_one_line(assets, tmp_path, capsys):
+    bare = tiny_onnx_model(tmp_path / "bare.onnx", contract=False)
+    assert main(["--camera", assets["video"], "--model", str(bare)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no model contract" in err[0]
+
+
+def test_sigint_exits_cleanly_with_summary_and_flushed_log(assets, tmp_path):
+    log_path = tmp_path / "t.jsonl"
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.Popen([sys.executable, "-m", "edge_runtime.run_cli", "--camera", assets["video"], "--loop",
+                             "--model", assets["model"], "--log", str(log_path), "--threads", "1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=str(tmp_path))
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and (not log_path.exists() or log_path.stat().st_size < 2000):
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "stopped by Ctrl-C" in out and "pipeline images/s" in out
+    lines = log_path.read_text().splitlines()
+    assert len(lines) >= 5 and all(json.loads(line)["frame"] >= 0 for line in lines)  # every line complete
+
+
+@pytest.mark.slow
+def test_default_run_flies_the_synthetic_flight_with_the_shipped_model(tmp_path, capsys):
+    log_path = tmp_path / "t.jsonl"
+    assert main(["--max-frames", "6", "--log", str(log_path)]) == 0  # no camera, no model: sim + edgenet
+    out = capsys.readouterr().out
+    assert "edge-run: sim -> edgenet" in out and "pipeline images/s" in out
+    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    assert len(decisions) == 6 and all(d["telemetry"] and d["agl_m"] > 0 for d in decisions)

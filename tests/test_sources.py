@@ -1,0 +1,167 @@
+"""Frame sources and the grabber thread: real OpenCV files, real threads."""
+from __future__ import annotations
+
+import logging
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from edge_runtime.errors import InputError
+from edge_runtime.sources import Grabber, Reader, SourceConfig, SourceKind
+from tests.run_helpers import write_video
+
+
+def drain(grabber: Grabber, limit: int = 1000, timeout_s: float = 5.0):
+    frames, end = [], time.monotonic() + timeout_s
+    while len(frames) < limit and time.monotonic() < end:
+        f = grabber.next(timeout_s=0.5)
+        if f is not None:
+            frames.append(f)
+        elif grabber.ended:
+            break
+    return frames
+
+
+@pytest.mark.parametrize("camera, kind", [("/dev/video0", SourceKind.DEVICE), ("2", SourceKind.DEVICE),
+                                          ("rtsp://10.0.0.1/cam", SourceKind.STREAM),
+                                          ("v4l2src ! videoconvert ! appsink", SourceKind.STREAM),
+                                          ("sim", SourceKind.SIM), ("frames/*.png", SourceKind.FOLDER),
+                                          ("flight.mp4", SourceKind.FILE)])
+def test_kind_from_string(camera, kind):
+    assert SourceKind.from_string(camera) is kind
+
+
+def test_video_file_gives_every_frame_with_ids_and_monotonic_times(tmp_path):
+    path = write_video(tmp_path / "v.avi", frames=9)
+    grabber = Grabber(SourceConfig.from_string(str(path))).start()
+    frames = drain(grabber)
+    grabber.stop()
+    assert [f.frame_id for f in frames] == list(range(9))
+    assert all(b.capture_time_s > a.capture_time_s for a, b in zip(frames, frames[1:]))
+    assert frames[0].rgb.shape == (96, 128, 3) and frames[0].rgb.dtype == np.uint8
+    assert grabber.ended and grabber.drops == 0
+
+
+def test_loop_repeats_a_file(tmp_path):
+    path = write_video(tmp_path / "v.avi", frames=4)
+    grabber = Grabber(SourceConfig.from_string(str(path), loop=True)).start()
+    frames = drain(grabber, limit=10)
+    grabber.stop()
+    assert len(frames) == 10 and [f.frame_id for f in frames] == list(range(10))
+
+
+def test_truncated_video_ends_cleanly_with_a_warning(tmp_path, caplog):
+    path = write_video(tmp_path / "v.avi", frames=30)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with caplog.at_level(logging.WARNING):
+        grabber = Grabber(SourceConfig.from_string(str(path))).start()
+        frames = drain(grabber)
+        grabber.stop()
+    assert 0 < len(frames) < 30
+    assert grabber.ended
+    assert any("ended early" in r.message for r in caplog.records)
+
+
+def test_garbage_video_is_one_clear_error(tmp_path):
+    path = tmp_path / "broken.mp4"
+    path.write_bytes(b"\x00\x01not a video" * 50)
+    with pytest.raises(InputError, match="cannot open video file"):
+        Grabber(SourceConfig.from_string(str(path))).start()
+
+
+def test_missing_device_and_file_are_clear_errors(tmp_path):
+    with pytest.raises(InputError, match="/dev/video97 not found"):
+        Grabber(SourceConfig.from_string("/dev/video97")).start()
+    with pytest.raises(InputError, match="does not exist"):
+        Grabber(SourceConfig.from_string(str(tmp_path / "nope.mp4"))).start()
+
+
+def test_image_folder_and_glob_skip_corrupt_images(tmp_path, caplog):
+    rng = np.random.default_rng(1)
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"{i:03d}.png"), rng.integers(0, 255, (32, 40, 3), dtype=np.uint8))
+    (tmp_path / "001b.png").write_bytes(b"corrupt")
+    with caplog.at_level(logging.WARNING):
+        grabber = Grabber(SourceConfig.from_string(str(tmp_path))).start()
+        frames = drain(grabber)
+        grabber.stop()
+    assert len(frames) == 3 and any("001b.png" in r.message for r in caplog.records)
+    grabber = Grabber(SourceConfig.from_string(str(tmp_path / "00[02].png"))).start()
+    assert len(drain(grabber)) == 2
+    grabber.stop()
+    with pytest.raises(InputError, match="no images found"):
+        Grabber(SourceConfig.from_string(str(tmp_path / "*.jpg"))).start()
+
+
+class FastCamera(Reader):
+    """A live source producing frames as fast as it can; fails once after ``fail_after`` frames."""
+
+    opened = 0
+
+    def __init__(self, fail_after: int = 0):
+        FastCamera.opened += 1
+        self.fail_after, self.count = fail_after, 0
+        self.name = "fast"
+
+    def read(self):
+        self.count += 1
+        if self.fail_after and self.count > self.fail_after:
+            raise OSError("camera unplugged")
+        time.sleep(0.002)
+        return np.full((16, 16, 3), self.count % 255, np.uint8)
+
+
+def test_live_source_keeps_newest_frame_and_counts_drops():
+    config = SourceConfig("fake-live", SourceKind.DEVICE)
+    grabber = Grabber(config, opener=lambda c: FastCamera()).start()
+    seen = []
+    for _ in range(5):
+        time.sleep(0.05)  # a slow pipeline
+        seen.append(grabber.next(timeout_s=1.0))
+    grabber.stop()
+    assert all(f is not None for f in seen)
+    assert grabber.drops > 0
+    assert grabber.drops + len(seen) <= grabber.grabbed + 1
+    assert seen[-1].frame_id > seen[0].frame_id + 4  # intermediate frames were dropped, the newest kept
+
+
+def test_lost_camera_is_reopened_with_backoff_and_the_loop_goes_on(caplog):
+    FastCamera.opened = 0
+    config = SourceConfig("fake-live", SourceKind.DEVICE, reopen_min_s=0.05, reopen_max_s=0.1)
+    with caplog.at_level(logging.WARNING):
+        grabber = Grabber(config, opener=lambda c: FastCamera(fail_after=5)).start()
+        frames = drain(grabber, limit=15, timeout_s=5.0)
+        ended_while_running = grabber.ended
+        grabber.stop()
+    assert len(frames) == 15 and not ended_while_running
+    assert grabber.faults >= 2 and FastCamera.opened >= 3
+    assert any("reopening" in r.message for r in caplog.records)
+    assert any("is back" in r.message for r in caplog.records)
+
+
+def test_sim_source_without_the_extra_names_it(monkeypatch):
+    import sys
+
+    from edge_runtime.errors import MissingExtraError
+
+    monkeypatch.setitem(sys.modules, "sim", None)  # as if the [sim] extra were not installed
+    with pytest.raises(MissingExtraError, match=r"edge-landing\[sim\]"):
+        Grabber(SourceConfig.from_string("sim")).start()
+
+
+@pytest.mark.slow
+def test_sim_source_gives_frames_and_perfect_telemetry():
+    from edge_runtime.telemetry import TelemetryBuffer
+
+    telemetry = TelemetryBuffer()
+    grabber = Grabber(SourceConfig.from_string("sim:suburban:1", width=64, height=48, fps=20.0),
+                      telemetry=telemetry).start()
+    frames = drain(grabber, limit=4, timeout_s=60.0)
+    grabber.stop()
+    assert len(frames) == 4 and frames[0].rgb.shape == (48, 64, 3)
+    state = telemetry.state_at(frames[-1].capture_time_s)
+    assert state is not None and state.position_ned_m is not None and 20.0 < state.agl_m < 120.0
+    assert grabber.reader.intrinsics.width == 64
