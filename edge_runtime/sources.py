@@ -181,10 +181,13 @@ class ImageFolderReader(Reader):
 class SimReader(Reader):
     """The synthetic camera of the ``sim`` package (the ``[sim]`` extra), imported only when asked for.
 
-    ``--camera sim[:STYLE][:SEED]``, e.g. ``sim``, ``sim:urban``, ``sim:urban:3``. It flies a landing approach
-    in real time at ``fps`` (default 10) and, like a camera with perfect telemetry, gives the vehicle state
-    of each frame (``last_state``), which the grabber feeds to the telemetry buffer at the capture time.
+    ``--camera sim[:STYLE][:SEED]``, e.g. ``sim``, ``sim:urban``, ``sim:urban:3``. It flies one landing approach
+    (approach, hover, descent; ``FLIGHT_FRAMES`` frames) in real time at ``fps`` (default 10) and then ends, or
+    repeats it with ``--loop``. Like a camera with perfect telemetry, it gives the vehicle state of each frame
+    (``last_state``), which the grabber feeds to the telemetry buffer at the capture time.
     """
+
+    FLIGHT_FRAMES = 200
 
     DEFAULT_SIZE = (160, 120)  # renders at about 15 frames/s on one busy core
 
@@ -201,13 +204,18 @@ class SimReader(Reader):
         width, height = (config.width, config.height) if config.width and config.height else self.DEFAULT_SIZE
         log.info("building the synthetic %s world (seed %d) for the sim camera...", style, seed)
         self.camera = sim.SimCamera(style=style, seed=seed, width=width, height=height, fps=config.fps or 10.0,
-                                    realtime=True)
+                                    flight_frames=self.FLIGHT_FRAMES, realtime=True)
+        self._frames_left = None if config.loop else self.FLIGHT_FRAMES
         self.name = f"sim:{style}:{seed}"
         self.intrinsics = self.camera.intrinsics
         self.mount = self.camera.mount
         self.last_state = None
 
     def read(self) -> Optional[np.ndarray]:
+        if self._frames_left is not None:
+            if self._frames_left <= 0:
+                return None  # the flight is over: end the run cleanly
+            self._frames_left -= 1
         rgb, _pose, self.last_state = self.camera.read()
         return rgb
 
