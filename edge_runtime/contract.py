@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field, replace
-from enum import Enum
 from typing import Mapping, Optional
 
 import numpy as np
 
+from .choices import ChoiceEnum
 from .errors import ContractError
 
 KEY_ARCH = "edge.arch"
@@ -37,17 +37,12 @@ HVO_CLASSES = ("horizontal", "vertical", "other")
 HVO_IGNORE = 255
 
 
-class _StrEnum(str, Enum):
-    @classmethod
-    def from_string(cls, value: str):
-        try:
-            return cls(value)
-        except ValueError:
-            choices = ", ".join(m.value for m in cls)
-            raise ContractError(f"unsupported {cls.__name__} '{value}'; expected one of: {choices}") from None
+class _StrEnum(ChoiceEnum):
+    """Contract enums: a bad value in a model's metadata is a ContractError."""
 
-    def __str__(self) -> str:
-        return self.value
+    @classmethod
+    def _error(cls) -> type:
+        return ContractError
 
 
 class Task(_StrEnum):

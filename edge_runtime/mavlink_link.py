@@ -18,12 +18,12 @@ import socket
 import threading
 import time
 from dataclasses import dataclass
-from enum import Enum
 from pathlib import Path
 from typing import Optional, Tuple
 
 import numpy as np
 
+from .choices import ChoiceEnum
 from .errors import InputError
 from .messages import Target, VehicleState
 from .telemetry import RANGEFINDER_DOWN, TelemetryBuffer
@@ -35,16 +35,13 @@ TARGET_TYPE_VISION_OTHER = 3
 TELEMETRY_MESSAGES = ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "LOCAL_POSITION_NED")
 
 
-class Autopilot(str, Enum):
+class Autopilot(ChoiceEnum):
     ARDUPILOT = "ardupilot"
     PX4 = "px4"
 
     @classmethod
-    def from_string(cls, value: str) -> "Autopilot":
-        try:
-            return cls(value.lower())
-        except ValueError:
-            raise InputError(f"unsupported autopilot '{value}'; expected one of: ardupilot, px4") from None
+    def _label(cls) -> str:
+        return "autopilot"
 
 
 @dataclass(frozen=True)

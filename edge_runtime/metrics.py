@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import Enum
 from typing import Dict, List, Optional
 
 import cv2
 import numpy as np
 
+from .choices import ChoiceEnum
 from .contract import HVO_CLASSES, HVO_IGNORE
 from .errors import InputError
 
@@ -29,19 +29,15 @@ HVO_KEYS = ("accuracy", "precision", "recall", "iou")
 _SUM_KEYS = ("n", "a1", "a2", "a3", "abs_rel", "sq_rel", "sq_err", "sq_log_err", "log10", "e", "e2")
 
 
-class Averaging(str, Enum):
+class Averaging(ChoiceEnum):
     """How a scene's figure is formed: mean of per-image metrics (AdaBins) or one pass over all pixels."""
 
     PER_IMAGE = "per-image"
     GLOBAL = "global"
 
     @classmethod
-    def from_string(cls, value: str) -> "Averaging":
-        try:
-            return cls(value)
-        except ValueError:
-            raise InputError(f"unsupported averaging '{value}'; expected one of: "
-                             f"{', '.join(m.value for m in cls)}") from None
+    def _label(cls) -> str:
+        return "averaging"
 
 
 # -- depth ------------------------------------------------------------------------------------------------

@@ -6,23 +6,18 @@ values (the paper's '–') are None. Starred depth rows are per-image median-sca
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
 from typing import Dict, Optional, Tuple
 
-from .errors import InputError
+from .choices import ChoiceEnum
 
 
-class PaperDataset(str, Enum):
+class PaperDataset(ChoiceEnum):
     SAFEUAV = "safeuav"
     AIRSIMNC = "airsimnc"
 
     @classmethod
-    def from_string(cls, value: str) -> "PaperDataset":
-        try:
-            return cls(value.lower())
-        except ValueError:
-            raise InputError(f"unknown paper test set '{value}'; expected one of: "
-                             f"{', '.join(m.value for m in cls)}") from None
+    def _label(cls) -> str:
+        return "paper test set"
 
 
 @dataclass(frozen=True)

@@ -17,12 +17,12 @@ import logging
 import os
 import tempfile
 from dataclasses import asdict, dataclass
-from enum import Enum
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from edge_runtime.choices import ChoiceEnum
 from edge_runtime.errors import InputError, SceneError
 from edge_runtime.inference import OnnxModel
 from edge_runtime.scene import Scene
@@ -36,26 +36,13 @@ _COMPUTE_OPS = ("Conv", "ConvTranspose", "Gemm", "MatMul")
 _HEAD_WALK_LIMIT = 24  # nodes; a head is a handful of nodes, this only guards against eating the graph
 
 
-class _ChoiceEnum(str, Enum):
-    @classmethod
-    def from_string(cls, value: str):
-        try:
-            return cls(value)
-        except ValueError:
-            raise InputError(f"unsupported {cls.__name__} '{value}'; expected one of: "
-                             f"{', '.join(m.value for m in cls)}") from None
-
-    def __str__(self) -> str:
-        return self.value
-
-
-class CalibrationMethod(_ChoiceEnum):
+class CalibrationMethod(ChoiceEnum):
     MINMAX = "minmax"
     ENTROPY = "entropy"
     PERCENTILE = "percentile"
 
 
-class DepthHead(_ChoiceEnum):
+class DepthHead(ChoiceEnum):
     """Whether the last conv(s) feeding the depth output stay float: ``auto`` = float for depth models."""
 
     AUTO = "auto"
@@ -134,7 +121,8 @@ def split_frames(scene: Scene, calib_frames: int, eval_frames: int) -> Tuple[Lis
         raise InputError(f"--frames and --eval-frames must be at least 1, got {calib_frames} and {eval_frames}")
     if len(scene) <= calib_frames:
         raise SceneError(f"scene {scene.path} has {len(scene)} frame(s); calibrating on {calib_frames} needs at "
-                         f"least {calib_frames + 1} so that some are held out for the accuracy check")
+                         f"least {calib_frames + 1} so that some are held out for the accuracy check (lower --frames, e.g. "
+                         f"--frames {max(1, len(scene) * 2 // 3)}, or make a longer scene with edge-sim --frames)")
     return scene.frame_ids[:calib_frames], scene.frame_ids[calib_frames:calib_frames + eval_frames]
 
 

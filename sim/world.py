@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from enum import Enum, IntEnum
+from enum import IntEnum
 from functools import lru_cache
 
 import numpy as np
 
-from edge_runtime.errors import InputError, require_extra
+from edge_runtime.choices import ChoiceEnum
+from edge_runtime.errors import require_extra
 
 from .meshes import Part
 
@@ -45,20 +46,13 @@ class Material(IntEnum):
     WATER = 17         # garden pools
 
 
-class Style(str, Enum):
+class Style(ChoiceEnum):
     SUBURBAN = "suburban"
     URBAN = "urban"
 
     @classmethod
-    def from_string(cls, value: str) -> "Style":
-        try:
-            return cls(str(value).lower())
-        except ValueError:
-            raise InputError(f"unknown world style '{value}'; expected one of: "
-                             f"{', '.join(m.value for m in cls)}") from None
-
-    def __str__(self) -> str:
-        return self.value
+    def _label(cls) -> str:
+        return "world style"
 
 
 @dataclass(frozen=True)

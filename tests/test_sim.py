@@ -188,7 +188,7 @@ def test_sim_camera_reads_frames_with_pose_and_state():
 
 @pytest.mark.parametrize("args, needle", [
     (["--frames", "-3"], "--frames must be at least 1"),
-    (["--style", "desert"], "unknown world style 'desert'"),
+    (["--style", "desert"], "unsupported world style 'desert'"),
     (["--rain", "2"], "--rain must be between 0 and 1"),
     (["--frames", "two"], "invalid int value"),
 ])
