@@ -10,7 +10,7 @@ class ChoiceEnum(str, Enum):
     """A string enum for a user-facing choice.
 
     ``from_string`` is case-insensitive and raises ``_error`` (InputError by default) with a message like
-    ``unknown world style 'x'; expected one of: suburban, urban``. Subclasses name the choice in ``_label``.
+    ``unsupported world style 'x'; expected one of: suburban, urban``. Subclasses name the choice in ``_label``.
     """
 
     @classmethod
