@@ -13,18 +13,9 @@ from export.zoo.densedepth import CLASSIFIER_PREFIX  # noqa: E402
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """The test machine's cores are shared: keep torch to one thread here, as the project asks."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+def _one_torch_thread(one_torch_thread):
+    """Keep torch to one thread in this module (tests/conftest.py)."""
 
-
-@pytest.fixture(scope="module")
-def densedepth():
-    torch.manual_seed(0)
-    return get_arch("densedepth").build(Task.DEPTH).eval()
 
 
 @pytest.fixture(scope="module")

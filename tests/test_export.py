@@ -18,12 +18,8 @@ QUIET = ExportSettings(progress=False, threads=1)
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """The test machine's cores are shared: keep torch to one thread here, as the project asks."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+def _one_torch_thread(one_torch_thread):
+    """Keep torch to one thread in this module (tests/conftest.py)."""
 
 
 def _pkl(path, model, key="weights", seed=3):

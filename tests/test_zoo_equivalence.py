@@ -32,11 +32,8 @@ REL_TOL = 1e-3
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+def _one_torch_thread(one_torch_thread):
+    """Keep torch to one thread in this module (tests/conftest.py)."""
 
 
 def _rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
