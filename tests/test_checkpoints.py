@@ -12,10 +12,8 @@ from export.zoo import get_arch  # noqa: E402
 from export.zoo.densedepth import CLASSIFIER_PREFIX  # noqa: E402
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread(one_torch_thread):
-    """Keep torch to one thread in this module (tests/conftest.py)."""
-
+# Keep torch to one thread in this module (tests/conftest.py).
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -17,9 +17,8 @@ from export.zoo.registry import ArchSpec  # noqa: E402
 QUIET = ExportSettings(progress=False, threads=1)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread(one_torch_thread):
-    """Keep torch to one thread in this module (tests/conftest.py)."""
+# Keep torch to one thread in this module (tests/conftest.py).
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _pkl(path, model, key="weights", seed=3):

@@ -10,10 +10,8 @@ from export.zoo import get_arch  # noqa: E402
 from export.zoo.densenet import DENSENET169, DenseNet  # noqa: E402
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread(one_torch_thread):
-    """Keep torch to one thread in this module (tests/conftest.py)."""
-
+# Keep torch to one thread in this module (tests/conftest.py).
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_densedepth_parameter_count_matches_the_paper(densedepth):

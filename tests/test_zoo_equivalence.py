@@ -31,9 +31,8 @@ from export.zoo.efficientnet import EFFICIENTNET_B5_TF, EfficientNet  # noqa: E4
 REL_TOL = 1e-3
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread(one_torch_thread):
-    """Keep torch to one thread in this module (tests/conftest.py)."""
+# Keep torch to one thread in this module (tests/conftest.py).
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
