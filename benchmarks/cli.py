@@ -21,7 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence, Tuple
 
-from edge_runtime.errors import InputError, run_cli
+from edge_runtime.errors import CliParser, InputError, run_cli
+from edge_runtime.scene import Scene
 
 from . import report as rep
 from .catalog import DEFAULT_MODELS, QUICK_MODELS, PrepareConfig, lookup, prepare
@@ -44,9 +45,9 @@ class BenchConfig:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="edge-bench", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog=__doc__.split("\n\n", 1)[1])
+    p = CliParser(prog="edge-bench", description=__doc__.split("\n\n")[0],
+                  formatter_class=argparse.RawDescriptionHelpFormatter,
+                  epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--models", help=f"comma-separated (default {','.join(DEFAULT_MODELS)}; "
                                     f"also adabins-80, adabins-256: 78 M parameters, slow)")
     p.add_argument("--threads", type=int, default=2, help="threads per backend (the drone has 2 cores)")
@@ -75,12 +76,20 @@ def parse_config(argv: Optional[Sequence[str]]) -> BenchConfig:
     a = build_parser().parse_args(argv)
     if a.threads < 1:
         raise InputError(f"--threads must be at least 1, got {a.threads}")
+    for flag, value, least in (("--iterations", a.iterations, 1), ("--warmup", a.warmup, 0),
+                               ("--max-seconds", a.max_seconds, 1e-9), ("--calib-frames", a.calib_frames, 1),
+                               ("--eval-frames", a.eval_frames, 1), ("--height", a.height, 16),
+                               ("--width", a.width, 16)):
+        if value is not None and not value >= least:
+            raise InputError(f"{flag} must be {'positive' if least < 1e-6 else f'at least {least}'}, got {value}")
+    if a.calib is not None:
+        Scene(a.calib)  # fail now (missing folder, no rgb/) rather than after exporting, or never on a cache hit
     names = tuple(n.strip() for n in a.models.split(",") if n.strip()) if a.models else (
         QUICK_MODELS if a.quick else DEFAULT_MODELS)
     lookup(names)
     speed = SpeedConfig(warmup=a.warmup if a.warmup is not None else (1 if a.quick else 3),
-                        iterations=a.iterations or (3 if a.quick else 30),
-                        max_seconds=a.max_seconds or (20.0 if a.quick else 120.0),
+                        iterations=a.iterations if a.iterations is not None else (3 if a.quick else 30),
+                        max_seconds=a.max_seconds if a.max_seconds is not None else (20.0 if a.quick else 120.0),
                         min_iterations=2 if a.quick else 5, progress=not a.no_progress)
     checkpoints = []
     for item in a.checkpoint:

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from edge_runtime.calibration_file import UNRELIABLE_SPREAD
-from edge_runtime.errors import InputError, run_cli
+from edge_runtime.errors import CliParser, InputError, run_cli
 from edge_runtime.inference import OnnxModel
 from edge_runtime.models import default_model_path
 from edge_runtime.scene import Scene
@@ -18,13 +18,14 @@ from .scene_scale import CalibrationConfig, calibrate_scene
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="edge-calibrate", description=__doc__.split("\n\n")[0])
+    p = CliParser(prog="edge-calibrate", description=__doc__.split("\n\n")[0])
     p.add_argument("scene", help="scene folder with rgb/ and depth/")
     p.add_argument("--model", help="ONNX model (default: the shipped model)")
     p.add_argument("--out", help="output file (default: SCENE/calibration.json)")
-    p.add_argument("--min-depth", type=float, default=None, help="ground truth counted above this, metres")
+    p.add_argument("--min-depth", type=float, default=None,
+                   help="ground truth counted above this, metres (default: the model's contract min_depth)")
     p.add_argument("--max-depth", type=float, default=None,
-                   help="ground truth counted below this, metres (default: no limit)")
+                   help="ground truth counted below this, metres (default: the model's contract max_depth)")
     p.add_argument("--max-frames", type=int, default=None, help="use the first N frames only")
     p.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (default 2)")
     return p

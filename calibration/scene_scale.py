@@ -28,8 +28,9 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class CalibrationConfig:
-    """``min_depth_m``/``max_depth_m``: the ground truth counted in the ratios (default: every finite
-    depth above 1 mm). ``max_frames``: use only the first N frames (None = all)."""
+    """``min_depth_m``/``max_depth_m``: the ground truth counted in the ratios (default: the model's
+    contract range, ``edge.depth`` min/max, outside which its predictions are clamped and would bias the
+    ratio). ``max_frames``: use only the first N frames (None = all)."""
 
     min_depth_m: Optional[float] = None
     max_depth_m: Optional[float] = None
@@ -45,8 +46,8 @@ def calibrate_scene(scene: Scene, model: OnnxModel, config: CalibrationConfig = 
     if spec is None:
         raise InputError(f"model {model.path} has no depth head (edge.task = {model.contract.task}); "
                          f"calibration needs a depth model")
-    lo = config.min_depth_m if config.min_depth_m is not None else 1e-3
-    hi = config.max_depth_m if config.max_depth_m is not None else math.inf
+    lo = config.min_depth_m if config.min_depth_m is not None else spec.min_depth
+    hi = config.max_depth_m if config.max_depth_m is not None else spec.max_depth
     if not 0 <= lo < hi:
         raise InputError(f"need 0 <= min depth < max depth, got {lo} and {hi}")
     frame_ids = scene.frame_ids[: config.max_frames] if config.max_frames else scene.frame_ids

@@ -6,6 +6,7 @@ raises these: it marks the frame invalid and logs why.
 """
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 from typing import Callable, Sequence
@@ -47,6 +48,14 @@ def require_extra(module: str, extra: str):
         ) from exc
 
 
+class CliParser(argparse.ArgumentParser):
+    """argparse whose bad-argument errors are one InputError line (exit 2 through :func:`run_cli`) instead
+    of the multi-line usage dump; ``--help`` is unchanged."""
+
+    def error(self, message: str):
+        raise InputError(f"{message} (see {self.prog} --help)")
+
+
 def run_cli(main: Callable[[Sequence[str] | None], int | None], argv: Sequence[str] | None = None) -> int:
     """Run a CLI body, turning EdgeError into one line on stderr and a non-zero exit code."""
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -59,4 +68,11 @@ def run_cli(main: Callable[[Sequence[str] | None], int | None], argv: Sequence[s
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # stdout was closed early (`edge-eval … | head`): not an error of ours. Point stdout at devnull so
+        # the interpreter's final flush does not print a second traceback (Python docs, "SIGPIPE").
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE, what a shell reports for a command killed by a closed pipe
     return int(code or 0)

@@ -10,11 +10,11 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import List, Optional, Sequence, Tuple
 
 from .calibration_file import load_calibration, read_calibration
 from .contract import HVO_CLASSES
-from .errors import InputError, run_cli
+from .errors import CliParser, InputError, run_cli
 from .evaluation import EvalConfig, evaluate_scene, qualitative_grid
 from .inference import OnnxModel
 from .metrics import Averaging
@@ -27,9 +27,9 @@ HVO_COLUMNS = (("accuracy", "accuracy"), ("precision", "precision"), ("recall", 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="edge-eval", description=__doc__.split("\n\n")[0],
-                                usage="edge-eval MODEL.onnx [MODEL2.onnx ...] SCENE [options]",
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = CliParser(prog="edge-eval", description=__doc__.split("\n\n")[0],
+                  usage="edge-eval MODEL.onnx [MODEL2.onnx ...] SCENE [options]",
+                  formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="+", metavar="PATH", help="one or more models, then the scene folder")
     p.add_argument("--calibration", action="append", default=[], metavar="FILE",
                    help="per-scene calibration.json (edge-calibrate); repeat for several models: each file is "
@@ -40,8 +40,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--paper", nargs="?", const="airsimnc", choices=[d.value for d in PaperDataset],
                    help="print the paper's rows beside (airsimnc = Tables 5–7, default; safeuav = Tables 2–4); "
                         "give it after the paths or as --paper=SET")
-    p.add_argument("--min-depth", type=float, default=1e-3, help="valid ground truth above this, metres (1e-3)")
-    p.add_argument("--max-depth", type=float, default=80.0, help="valid ground truth below this, metres (80)")
+    p.add_argument("--min-depth", type=float, default=None,
+                   help="valid ground truth above this, metres (default: the models' contract min_depth)")
+    p.add_argument("--max-depth", type=float, default=None,
+                   help="valid ground truth below this, metres (default: the models' contract max_depth; "
+                        "80 is the KITTI/AdaBins convention)")
     p.add_argument("--averaging", default="per-image", choices=[a.value for a in Averaging],
                    help="depth: mean of per-image metrics (AdaBins, default) or global over all pixels")
     p.add_argument("--hvo-averaging", default="global", choices=[a.value for a in Averaging],
@@ -65,7 +68,8 @@ def format_tables(result: dict, paper: Optional[PaperTables] = None) -> str:
     """The console report: depth, SSIM/Median Rel, HVO (only the tables the models and scene allow)."""
     cfg = result["config"]
     out = [f"scene {result['scene']}: {result['frames']} frames; valid depth {cfg['min_depth_m']:g}–"
-           f"{cfg['max_depth_m']:g} m, depth averaged {cfg['depth_averaging']}, HVO {cfg['hvo_averaging']}"]
+           f"{cfg['max_depth_m']:g} m" + (f" (from {cfg['depth_range_source']})" if cfg.get("depth_range_source") else "")
+           + f", depth averaged {cfg['depth_averaging']}, HVO {cfg['hvo_averaging']}"]
     px = result.get("depth_pixels")
     if px and px["finite"] and px["in_range"] < 0.8 * px["finite"]:
         out.append(f"note: only {px['in_range'] / px['finite']:.0%} of the finite ground-truth depth lies in "
@@ -84,15 +88,17 @@ def format_tables(result: dict, paper: Optional[PaperTables] = None) -> str:
                 rows.append([f"paper {'* ' if r.median_scaled else ''}{r.model}", _fmt(r.a1), _fmt(r.a2),
                              _fmt(r.a3), _fmt(r.abs_rel), "–", _fmt(r.rms), "–", _fmt(r.log10), "–"])
         n = paper.table_numbers[0] if paper else "2/5"
-        out += ["", _table(f"Depth (Table {n} style; * = per-image median-scaled, cal = per-scene calibrated; "
-                           f"RMS in m)", ["model", *(c for c, _ in DEPTH_COLUMNS)], rows)]
+        out += ["", _table(f"Depth (Table {n} style; plain = raw model output, * = per-image median-scaled, "
+                           f"cal = per-scene calibrated; RMS in m, the rest unitless)",
+                           ["model", *(c for c, _ in DEPTH_COLUMNS)], rows)]
         scale_rows = []
         for m in depth_models:
             d = m["depth"]
             ms = d["median_scale"] or {}
             scale_rows.append([m["name"], _fmt(ms.get("median")), _fmt(ms.get("min")), _fmt(ms.get("max")),
                                _fmt(d["calibration"]["scale"]) if d["calibration"] else "–"])
-        out += ["", _table("Per-image median-scale ratios (gt/pred) and the per-scene calibration used",
+        out += ["", _table("Per-image median-scale ratios (gt/pred) and the per-scene calibration used "
+                           "(– = no --calibration file for that model)",
                            ["model", "median", "min", "max", "calibration"], scale_rows)]
         rows = [[m["name"], _fmt(m["depth"]["ssim"]), _fmt(m["depth"]["median_rel"])] for m in depth_models]
         if paper is not None:
@@ -106,8 +112,12 @@ def format_tables(result: dict, paper: Optional[PaperTables] = None) -> str:
             for cls in (*HVO_CLASSES, "average"):
                 rows.append([m["name"], cls, *(_fmt(m["hvo"][cls][k]) for _, k in HVO_COLUMNS)])
         if paper is not None:
+            order = (*HVO_CLASSES, "average")  # the paper lists other before vertical; print in our order
+            models = list(dict.fromkeys(r.model for r in paper.hvo))
+            ranked = sorted(paper.hvo, key=lambda r: (models.index(r.model),
+                                                     order.index(r.cls) if r.cls in order else len(order)))
             rows += [[f"paper {r.model}", r.cls, _fmt(r.accuracy), _fmt(r.precision), _fmt(r.recall), _fmt(r.iou)]
-                     for r in paper.hvo]
+                     for r in ranked]
         n = paper.table_numbers[2] if paper else "4/7"
         out += ["", _table(f"HVO, each class against the rest (Table {n} style)",
                            ["model", "class", *(c for c, _ in HVO_COLUMNS)], rows)]
@@ -138,6 +148,21 @@ def _match_calibrations(files: Sequence[str], models: Sequence[OnnxModel]):
     return scales, names
 
 
+def _depth_range(args, models: Sequence[OnnxModel]) -> Tuple[float, float, str]:
+    """The scored ground-truth range: the flags where given, else the range every depth model's contract
+    (``edge.depth`` min/max) covers, so no pixel is scored against a prediction that can only be clamped."""
+    specs = [m.contract.depth for m in models if m.contract.depth is not None]
+    lo = max((s.min_depth for s in specs), default=EvalConfig.min_depth_m)
+    hi = min((s.max_depth for s in specs), default=EvalConfig.max_depth_m)
+    if lo >= hi:
+        lo, hi = EvalConfig.min_depth_m, EvalConfig.max_depth_m
+    src = "the models' contract (edge.depth min/max)" if specs else "the default range"
+    if args.min_depth is not None or args.max_depth is not None:
+        src = "--min-depth/--max-depth" + (f", the rest from {src}" if None in (args.min_depth, args.max_depth) else "")
+    return (args.min_depth if args.min_depth is not None else lo,
+            args.max_depth if args.max_depth is not None else hi, src)
+
+
 def _json_safe(obj):
     """NaN/inf -> null, so the file is strict JSON."""
     if isinstance(obj, float):
@@ -157,14 +182,19 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     *model_paths, scene_path = args.paths
     if args.threads < 1:
         raise InputError(f"--threads must be at least 1, got {args.threads}")
-    config = EvalConfig(args.min_depth, args.max_depth, Averaging.from_string(args.averaging),
-                        Averaging.from_string(args.hvo_averaging), args.max_frames)
     scene = Scene(scene_path)
     models = [OnnxModel.load(p, threads=args.threads) for p in model_paths]
+    min_depth_m, max_depth_m, range_source = _depth_range(args, models)
+    config = EvalConfig(min_depth_m, max_depth_m, Averaging.from_string(args.averaging),
+                        Averaging.from_string(args.hvo_averaging), args.max_frames)
     scales, cal_files = _match_calibrations(args.calibration, models)
     result = evaluate_scene(models, scene, config, scales, cal_files)
+    result["config"]["depth_range_source"] = range_source
     paper = paper_tables(args.paper) if args.paper else None
     print(format_tables(result, paper))
+    for kind, needed, present in (("depth", "has_depth", scene.has_depth), ("hvo", "has_hvo", scene.has_hvo)):
+        if not present and any(getattr(m.contract.task, needed) for m in models):
+            print(f"note: scene {scene.path} has no {kind}/ ground truth; the models' {kind} output is not scored")
     if args.json:
         if paper is not None:
             result["paper"] = paper.to_json()

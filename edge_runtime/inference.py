@@ -50,7 +50,8 @@ def _open_session(path: Path, config: SessionConfig):
     import onnxruntime as ort
 
     if not path.is_file():
-        raise ContractError(f"model file {path} does not exist")
+        what = "is a folder, not a file" if path.is_dir() else "does not exist"
+        raise ContractError(f"model file {path} {what} (expected an .onnx file)")
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = config.threads
     opts.inter_op_num_threads = 1

@@ -119,8 +119,20 @@ class OverlayRecorder:
                            size_px=min(INSET_PX, img.shape[0] // 2, img.shape[1] // 2))
         if inset is not None:
             h, w = inset.shape[:2]
-            img[:h, img.shape[1] - w:] = inset
+            x0 = img.shape[1] - w
+            img[:h, x0:] = inset
+            # Frame the inset and say what it is, so it does not read as part of the camera image.
+            cv2.rectangle(img, (x0, 0), (img.shape[1] - 1, h - 1), (255, 255, 255), 1)
+            cv2.putText(img, "grid N^", (x0 + 3, h - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (255, 255, 255), 1,
+                        cv2.LINE_AA)
         cv2.putText(img, f"#{frame.frame_id}", (6, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+        if pred.hvo_prob is not None:  # legend of the blended class colours: horizontal, vertical, other
+            cv2.rectangle(img, (3, 18), (44, 32), (30, 30, 30), -1)  # dark backing: the colours sit on the same hues
+            x = 6
+            for letter, colour in zip("HVO", HVO_COLOURS):
+                cv2.putText(img, letter, (x, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.4, tuple(int(c) for c in colour), 1,
+                            cv2.LINE_AA)
+                x += 12
         return img
 
     def close(self) -> None:

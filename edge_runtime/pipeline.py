@@ -19,6 +19,7 @@ from typing import Callable, Deque, Dict, List, Optional, Protocol, TextIO
 
 import numpy as np
 
+from .errors import ContractError
 from .inference import OnnxModel
 from .mavlink_link import target_ned
 from .messages import Frame, Prediction, Target, VehicleState
@@ -34,10 +35,19 @@ class Inference(Protocol):
     def predict(self, frame: Frame) -> Prediction: ...
 
 
+def _require_head(model: OnnxModel, head: str, role: str) -> None:
+    """Fail at start-up, not on every frame: landing needs metric depth, and an HVO model needs its head."""
+    task = model.contract.task
+    if not (task.has_depth if head == "depth" else task.has_hvo):
+        raise ContractError(f"{role} {model.path} has no {head} head (edge.task = {task.value}); edge-run needs "
+                            f"a depth+hvo model, or --depth-model with a depth head and --hvo-model with an HVO head")
+
+
 class JointInference:
     """One model with both heads (or a single head)."""
 
     def __init__(self, model: OnnxModel):
+        _require_head(model, "depth", "the model")
         self.model = model
         self.name = model.path.name
 
@@ -52,6 +62,8 @@ class PairInference:
     """A depth model and an HVO model run one after the other; HVO is resampled to the depth grid."""
 
     def __init__(self, depth_model: OnnxModel, hvo_model: OnnxModel):
+        _require_head(depth_model, "depth", "the depth model")
+        _require_head(hvo_model, "hvo", "the HVO model")
         self.depth_model, self.hvo_model = depth_model, hvo_model
         self.name = f"{depth_model.path.name} + {hvo_model.path.name}"
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from edge_runtime.contract import Task
-from edge_runtime.errors import InputError, run_cli
+from edge_runtime.errors import CliParser, InputError, run_cli
 
 # (flag attribute, ArchSpec option name)
 _OPTION_FLAGS = (("bins", "bins"), ("min_depth", "min_depth"), ("max_depth", "max_depth"))
@@ -40,8 +40,8 @@ class ExportCliConfig:
 def build_parser() -> argparse.ArgumentParser:
     from export.zoo import arch_names
 
-    p = argparse.ArgumentParser(prog="edge-export", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = CliParser(prog="edge-export", description=__doc__.split("\n\n")[0],
+                  formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--arch", required=True, choices=arch_names(), help="architecture of the zoo")
     p.add_argument("--task", choices=[t.value for t in Task], help="head to export (default: the arch's own)")
     p.add_argument("--checkpoint", type=Path, help="the authors' checkpoint (.pth / .pkl); "

@@ -124,7 +124,13 @@ def export_onnx(spec: ArchSpec, task: Optional[Task | str], out_path: os.PathLik
         raise InputError(f"checkpoint {checkpoint} does not exist")
     if out_path.suffix != ".onnx":
         raise InputError(f"output {out_path} should end in .onnx")
-    out_path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder {out_path.parent} for {out_path.name}: "
+                         f"{exc.strerror}") from None
+    if not os.access(out_path.parent, os.W_OK):
+        raise InputError(f"output folder {out_path.parent} is not writable")
     tmp = out_path.with_name(f".{out_path.name}.{os.getpid()}.tmp")
     if checkpoint is None:
         _warn_random(spec.name)

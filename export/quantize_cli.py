@@ -14,7 +14,7 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from edge_runtime.errors import EdgeError, run_cli
+from edge_runtime.errors import CliParser, EdgeError, InputError, run_cli
 
 from .quantize import CalibrationMethod, DepthHead, QuantizeConfig, QuantReport, Tolerance, quantize
 
@@ -24,7 +24,7 @@ class QuantizationRejected(EdgeError):
 
 def build_parser() -> argparse.ArgumentParser:
     t = Tolerance()
-    p = argparse.ArgumentParser(prog="edge-quantize", description=__doc__.split("\n\n")[0])
+    p = CliParser(prog="edge-quantize", description=__doc__.split("\n\n")[0])
     p.add_argument("model", type=Path, help="FP32 .onnx with the model contract (from edge-export)")
     p.add_argument("--calib", type=Path, required=True, help="scene folder: first --frames frames calibrate, "
                                                              "the following ones are held out for the check")
@@ -81,13 +81,18 @@ def format_report(report: QuantReport) -> str:
     excluded = report.settings.get("excluded_nodes", [])
     lines.append(f"  settings: QDQ u8 activations / s8 weights, per_channel={report.settings['per_channel']}, "
                  f"{report.settings.get('subpixel_conv_transposes', 0)} ConvTranspose(s) rewritten as Conv, "
-                 f"reduce_range={report.settings['reduce_range']}, {len(excluded)} node(s) and op type(s) "
-                 f"{', '.join(report.settings['float_op_types']) or 'none'} kept float")
+                 f"reduce_range={report.settings['reduce_range']}; kept float: {len(excluded)} named node(s) and "
+                 f"op type(s) {', '.join(report.settings['float_op_types']) or 'none'}")
+    if "hvo" in c and _fmt(c["hvo"]["fp32"]["horizontal_precision"]) == "nan":
+        lines.append("  note: horizontal precision is nan because the FP32 model predicts no horizontal pixel on "
+                     "these frames (random or untrained weights?)")
     return "\n".join(lines)
 
 
 def main_body(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.threads is not None and args.threads < 1:
+        raise InputError(f"--threads must be at least 1, got {args.threads}")
     tol = Tolerance(args.max_delta1_drop, args.max_absrel_increase, args.min_depth_agreement,
                     args.max_miou_drop, args.max_hprec_drop, args.min_label_agreement)
     config = QuantizeConfig(calib_scene=args.calib, calib_frames=args.frames, eval_frames=args.eval_frames,

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import pickle
 import subprocess
 import time
 from dataclasses import asdict, dataclass, field
@@ -66,6 +67,7 @@ class TrainConfig:
     export: bool = True
     augment: AugmentConfig = AugmentConfig()
     progress: bool = True
+    overwrite: bool = False                  # allow a fresh run into a folder that holds an earlier one
 
 
 @dataclass
@@ -239,7 +241,13 @@ def train(cfg: TrainConfig) -> TrainResult:
         raise InputError(f"{spec.name} has no '{task}' head; expected one of: {', '.join(map(str, spec.tasks))}")
     if cfg.epochs < 1 or cfg.batch < 1 or not cfg.lr > 0:
         raise InputError(f"need epochs >= 1, batch >= 1 and lr > 0, got {cfg.epochs}, {cfg.batch}, {cfg.lr}")
-    h, w = cfg.height or spec.input_hw[0], cfg.width or spec.input_hw[1]
+    if cfg.max_steps_per_epoch is not None and cfg.max_steps_per_epoch < 1:
+        raise InputError(f"--max-steps must be at least 1, got {cfg.max_steps_per_epoch}")
+    h = cfg.height if cfg.height is not None else spec.input_hw[0]
+    w = cfg.width if cfg.width is not None else spec.input_hw[1]
+    if min(h, w) < max(16, spec.size_multiple):
+        raise InputError(f"training size {h}x{w} is too small for {spec.name}: at least "
+                         f"{max(16, spec.size_multiple)} pixels each way expected")
     if h % spec.size_multiple or w % spec.size_multiple:
         raise InputError(f"training size {h}x{w} does not suit {spec.name}: multiples of {spec.size_multiple} expected")
     options = dict(cfg.options)
@@ -248,7 +256,13 @@ def train(cfg: TrainConfig) -> TrainResult:
                    DepthLossSpace.from_spec(contract.depth) if contract.depth else None, cfg.hvo_weight)
     device = _device(cfg.device)
     out = Path(cfg.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if (out / "last.pth").exists() and not cfg.resume and not cfg.overwrite:
+        raise InputError(f"--out {out} already holds a training run (last.pth); continue it with --resume "
+                         f"{out / 'last.pth'}, choose a new --out, or pass --overwrite to replace it")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder {out}: {exc.strerror}") from None
 
     train_set = load_scenes(cfg.train_scenes, h, w, task.has_depth, task.has_hvo, cfg.progress)
     val_set = load_scenes([cfg.val_scene], h, w, task.has_depth, task.has_hvo, cfg.progress) if cfg.val_scene else None
@@ -259,11 +273,15 @@ def train(cfg: TrainConfig) -> TrainResult:
     scheduler = _schedule(optimizer, steps * cfg.epochs)
     start_epoch, best, history = 0, math.inf, []
     if cfg.resume:
-        state = torch.load(cfg.resume, map_location=device, weights_only=True)
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        start_epoch, best, history = int(state["epoch"]), float(state["best_val"]), json.loads(state["history"])
+        try:
+            state = torch.load(cfg.resume, map_location=device, weights_only=True)
+            model.load_state_dict(state["model"])
+            optimizer.load_state_dict(state["optimizer"])
+            scheduler.load_state_dict(state["scheduler"])
+            start_epoch, best, history = int(state["epoch"]), float(state["best_val"]), json.loads(state["history"])
+        except (RuntimeError, KeyError, TypeError, ValueError, pickle.UnpicklingError, EOFError) as exc:
+            raise InputError(f"--resume {cfg.resume} is not a last.pth/best.pth written by edge-train for this "
+                             f"architecture and size ({_why_unloadable(exc)})") from None
         log.info("resumed %s at epoch %d", cfg.resume, start_epoch)
     elif cfg.init:
         spec.load_checkpoint(model, Path(cfg.init))
@@ -345,6 +363,15 @@ def _record(cfg, arch, task, hw, train_set, val_set, history, wall_s, device) ->
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "device": str(device), "threads": cfg.threads, "wall_s": round(wall_s, 1), "torch": torch.__version__,
     }
+
+
+def _why_unloadable(exc: Exception) -> str:
+    """A short reason for a checkpoint that does not load (torch's unpickling messages run to a page)."""
+    if isinstance(exc, (pickle.UnpicklingError, EOFError)):
+        return "not a PyTorch checkpoint file, or a truncated one"
+    if isinstance(exc, KeyError):
+        return f"no '{exc.args[0]}' entry"
+    return f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"
 
 
 def export_trained(cfg: TrainConfig, checkpoint: Path, out_path: Path, record: dict) -> Path:

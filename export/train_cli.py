@@ -15,7 +15,7 @@ import argparse
 from pathlib import Path
 from typing import Sequence
 
-from edge_runtime.errors import InputError, run_cli
+from edge_runtime.errors import CliParser, InputError, run_cli
 
 from .augment import AugmentConfig
 from .train import TrainConfig, train
@@ -23,7 +23,7 @@ from .zoo import arch_names
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="edge-train", description=__doc__.split("\n\n")[0])
+    p = CliParser(prog="edge-train", description=__doc__.split("\n\n")[0])
     p.add_argument("--arch", required=True, help=f"architecture: {', '.join(arch_names())}")
     p.add_argument("--task", default=None, help="depth, hvo or depth+hvo (default: the architecture's)")
     p.add_argument("--train", nargs="+", required=True, metavar="SCENE", help="training scene folder(s)")
@@ -47,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=None, help="cap on steps per epoch (smoke runs)")
     p.add_argument("--no-augment", action="store_true", help="train without augmentation")
     p.add_argument("--no-export", action="store_true", help="skip the ONNX export at the end")
+    p.add_argument("--overwrite", action="store_true", help="start afresh in an --out folder that holds a run")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -68,7 +69,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         height=args.height, width=args.width, export_height=args.export_height, export_width=args.export_width,
         options=options, resume=args.resume, init=args.init, threads=args.threads, device=args.device,
         seed=args.seed, hvo_weight=args.hvo_weight, max_steps_per_epoch=args.max_steps, export=not args.no_export,
-        augment=AugmentConfig.none() if args.no_augment else AugmentConfig(), progress=not args.no_progress)
+        augment=AugmentConfig.none() if args.no_augment else AugmentConfig(), progress=not args.no_progress,
+        overwrite=args.overwrite)
 
 
 def _main(argv: Sequence[str] | None) -> int:

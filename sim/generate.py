@@ -50,6 +50,8 @@ class SimConfig:
     def __post_init__(self):
         if self.frames < 1:
             raise InputError(f"--frames must be at least 1, got {self.frames}")
+        if self.seed < 0:  # numpy's SeedSequence takes non-negative integers only
+            raise InputError(f"--seed must be a non-negative integer, got {self.seed}")
         for name in ("width", "height"):
             v = getattr(self, name)
             if not 16 <= v <= 4096:

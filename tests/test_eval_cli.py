@@ -48,16 +48,17 @@ def model_path(tmp_path):
     return tiny_onnx_model(tmp_path / "tiny.onnx", H, W)
 
 
-def independent_figures(scene_path, size=(H, W)):
+def independent_figures(scene_path, size=(H, W), depth_range=(1e-3, 80.0)):
     """What the tiny model must score, computed without the inference code: depth = 1 + red, HVO = argmax."""
     scene = Scene(scene_path)
+    lo, hi = depth_range
     raw, star, cms = [], [], np.zeros((3, 3), np.int64)
     for fid in scene.frame_ids:
         rgb = scene.read_rgb(fid)
         pred = 1.0 + rgb[..., 0].astype(np.float64)
         gt = scene.read_depth(fid)
-        raw.append(depth_metrics(gt, pred))
-        star.append(median_scaled_depth_metrics(gt, pred))
+        raw.append(depth_metrics(gt, pred, lo, hi))
+        star.append(median_scaled_depth_metrics(gt, pred, lo, hi))
         cms += np.asarray(hvo_metrics(scene.read_hvo(fid), rgb.argmax(axis=2))["confusion"])
     mean = lambda rows: {k: np.mean([r[k] for r in rows]) for k in DEPTH_KEYS}
     return mean(raw), mean(star), cms
@@ -71,7 +72,11 @@ def test_json_figures_match_an_independent_computation(tmp_path, model_path, cap
     assert "δ1" in printed and "* tiny" in printed and "horizontal" in printed and "SSIM" in printed
     result = json.loads(out.read_text())
     m = result["models"][0]
-    raw, star, cm = independent_figures(scene)
+    # No --min/--max-depth: the scored range is the model's contract range (edge.depth min/max).
+    spec = OnnxModel.load(model_path).contract.depth
+    assert (result["config"]["min_depth_m"], result["config"]["max_depth_m"]) == (spec.min_depth, spec.max_depth)
+    assert "contract" in result["config"]["depth_range_source"]
+    raw, star, cm = independent_figures(scene, depth_range=(spec.min_depth, spec.max_depth))
     for k in DEPTH_KEYS:
         assert m["depth"]["raw"][k] == pytest.approx(raw[k], rel=1e-5), k
         assert m["depth"]["median_scaled"][k] == pytest.approx(star[k], rel=1e-5, abs=1e-9), k
@@ -99,7 +104,7 @@ def test_calibrated_rows_use_the_calibration_file(tmp_path, model_path, capsys):
     scale = json.loads((scene / "calibration.json").read_text())["scale"]
     out = tmp_path / "r.json"
     assert eval_main([str(model_path), str(scene), "--calibration", str(scene / "calibration.json"),
-                      "--json", str(out), "--paper"]) == 0
+                      "--json", str(out), "--min-depth", "1e-3", "--max-depth", "80", "--paper"]) == 0
     printed = capsys.readouterr().out
     assert "cal tiny" in printed and "paper * AdaBins-80" in printed and "paper SafeUAV-Net-Large" in printed
     result = json.loads(out.read_text())
