@@ -13,7 +13,11 @@ Pure numpy/OpenCV; ``update`` never raises: every failure is a ``Target.none(...
 
 Frames: without a vehicle position the grid is rebuilt each frame around the vehicle in the level frame
 (NED-oriented, origin at the camera). With ``state.position_ned_m`` it is kept in local NED across frames,
-its evidence decaying with ``decay_s``, so the target stays put in the world while the vehicle moves.
+its evidence decaying with ``decay_s``, so the target stays put in the world while the vehicle moves. Each
+cell is judged within its frame (network depth scale wanders ~1 % between frames, more than the 0.1 m
+spread limit at 40-80 m) and only the verdicts are accumulated: a cell is landable while at least
+``min_vote_share`` of its decayed observations found it landable (edge_runtime.grid.TopDownGrid), so an
+obstacle that appears on a cell seen clear for long outvotes it after decay_s·ln(1/min_vote_share) (~1 s).
 Depth is required. HVO is optional: without it (a depth-only model) cells are judged by the depth slope and
 height spread alone and the confidence is multiplied by ``depth_only_confidence`` (degraded mode, said in
 the target's ``reason``).
@@ -54,6 +58,7 @@ class FusionConfig:
     max_slope_rad: float = HvoThresholds().horizontal_max_rad   # flat by depth (same threshold as HVO labels)
     min_horizontal_share: float = 0.6             # mean P(horizontal) in a cell
     min_flat_share: float = 0.9                   # share of samples flat by depth in a cell
+    min_vote_share: float = 0.6                   # NED: decayed share of frames that judged a cell landable
     clearance_saturation_m: float = 4.0           # more clearance than this earns no more score
     travel_penalty_per_m: float = 0.03            # score (metres of clearance) lost per metre of travel
     hysteresis_m: float = 1.0                     # a new spot must beat the kept one by this score
@@ -91,6 +96,8 @@ class FusionConfig:
             raise InputError(f"fusion depth_smoothing_px must be odd and >= 1, got {self.depth_smoothing_px}")
         if not 1 <= self.min_neighbours_to_fill <= 9:
             raise InputError(f"fusion min_neighbours_to_fill must be in 1..9, got {self.min_neighbours_to_fill}")
+        if not 0 < self.min_vote_share <= 1:
+            raise InputError(f"fusion min_vote_share must be in (0, 1], got {self.min_vote_share}")
         if not 0 < self.max_slope_rad < math.pi / 2:
             raise InputError(f"fusion max_slope_rad must be in (0, pi/2), got {self.max_slope_rad}")
 
@@ -117,6 +124,11 @@ def _smooth_depth(depth: np.ndarray, size: int, max_step: float) -> np.ndarray:
     valid = np.isfinite(depth)
     k = (size, size)
     kernel = np.ones(k, np.uint8)
+    if valid.all():                                      # the usual case: no masking needed
+        lo = cv2.erode(depth, kernel, borderType=cv2.BORDER_REPLICATE)
+        hi = cv2.dilate(depth, kernel, borderType=cv2.BORDER_REPLICATE)
+        mean = cv2.blur(depth, k, borderType=cv2.BORDER_REPLICATE)
+        return np.where(hi - lo <= max_step * depth, mean, depth)
     lo = cv2.erode(np.where(valid, depth, np.float32(np.inf)), kernel, borderType=cv2.BORDER_REPLICATE)
     hi = cv2.dilate(np.where(valid, depth, np.float32(0.0)), kernel, borderType=cv2.BORDER_REPLICATE)
     total = cv2.blur(np.where(valid, depth, np.float32(0.0)), k, borderType=cv2.BORDER_REPLICATE)
@@ -224,7 +236,8 @@ class LandingFuser:
         self._view = self._grid.evaluate(CellRules(cfg.min_points_per_cell, cfg.max_height_spread_m,
                                                    cfg.min_horizontal_share, cfg.min_flat_share,
                                                    use_hvo=hvo_h is not None,
-                                                   min_neighbours_to_fill=cfg.min_neighbours_to_fill), mode)
+                                                   min_neighbours_to_fill=cfg.min_neighbours_to_fill,
+                                                   min_vote_share=cfg.min_vote_share), mode)
         if n_in == 0 and mode == "vehicle":
             return none(f"no depth inside the grid: nothing valid within {cfg.grid_radius_m} m of the vehicle")
 

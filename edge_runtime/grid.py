@@ -3,7 +3,9 @@
 Per cell it keeps, as PX4-Avoidance's safe_landing_planner does, the (decayed) number of samples, the sum
 and the sum of squares of the height (so mean and spread), the sum of horizontal votes from the net and
 the sum of flat-by-depth votes. A cell is landable when it has enough support, a small height spread and
-large enough horizontal and flat shares; clearance is the metric distance to the nearest cell that is not.
+large enough horizontal and flat shares, judged within one frame; across frames (NED mode) only these
+verdicts are accumulated, never raw heights (see :class:`TopDownGrid`). Clearance is the metric distance
+to the nearest cell that is not landable.
 
 Why splat instead of dropping one point per pixel: at 30-90 m and ~160 pixels across, one pixel covers
 0.5-2 m of ground, more than a 0.5 m cell, so plain point binning leaves most cells empty ("unobserved")
@@ -20,6 +22,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -38,6 +41,7 @@ class CellRules:
     min_flat_share: float
     use_hvo: bool = True
     min_neighbours_to_fill: int = 6
+    min_vote_share: float = 0.6
 
 
 @dataclass(frozen=True)
@@ -55,9 +59,11 @@ class GridView:
     north0_m: float
     east0_m: float
     ref_down_m: float          # heights in ``sums`` are relative to this
-    sums: np.ndarray           # 5 × rows × cols: count, Σh, Σh², Σ horizontal votes, Σ flat votes
+    sums: np.ndarray           # 5 × rows × cols: count, Σh, Σh², Σ horizontal votes, Σ flat votes (NED:
+                               # summed over frames, so spread_m there mixes frames; landable uses votes)
     landable: np.ndarray       # rows × cols bool
     clearance_m: np.ndarray    # rows × cols float32, 0 where not landable
+    votes: Optional[np.ndarray] = None   # 2 × rows × cols: (decayed) frames that observed / judged landable
 
     @property
     def shape(self) -> tuple:
@@ -136,43 +142,55 @@ def splat_samples(points: np.ndarray, step_u: np.ndarray, step_v: np.ndarray, sp
     len_v = np.hypot(step_v[0], step_v[1])
     # A footprint this large means the "step" jumps across a discontinuity: keep the bare point.
     joined = (len_u <= max_footprint_m) & (len_v <= max_footprint_m)
-    inv = 1.0 / spacing_m
-    ku = np.where(joined, np.clip(np.ceil(len_u * inv), 1, max_per_axis), 1).astype(np.int32)
-    kv = np.where(joined, np.clip(np.ceil(len_v * inv), 1, max_per_axis), 1).astype(np.int32)
-    key = ku * (max_per_axis + 1) + kv
+    inv = np.float32(1.0 / spacing_m)
+    ku = np.where(joined, np.clip(np.ceil(len_u * inv), 1, max_per_axis), 1).astype(np.uint8)
+    kv = np.where(joined, np.clip(np.ceil(len_v * inv), 1, max_per_axis), 1).astype(np.uint8)
+    # uint8 keys: numpy's stable argsort is a radix sort for them (several times faster than on int32).
+    key = ku * np.uint8(max_per_axis + 1) + kv if max_per_axis < 15 else ku.astype(np.int32) * (max_per_axis + 1) + kv
     order = np.argsort(key, kind="stable")
-    key_sorted = key[order]
-    bounds = np.flatnonzero(np.diff(key_sorted)) + 1
-    starts = np.concatenate(([0], bounds)).tolist()
-    ends = np.concatenate((bounds, [key_sorted.shape[0]])).tolist()
+    groups = np.bincount(key, minlength=(max_per_axis + 1) ** 2)
     # np.take, not fancy indexing: several times faster for column gathers of a 2-D array.
     p, su, sv = (np.take(x, order, axis=1) for x in (points, step_u, step_v))
-    total = int(np.sum(ku * kv))
+    keys = np.flatnonzero(groups)
+    sizes = groups[keys]
+    lattice = (keys // (max_per_axis + 1)) * (keys % (max_per_axis + 1))
+    total = int(np.dot(sizes, lattice))
     out = np.empty((3, total), dtype=np.float32)
     out_pix = np.empty(total, dtype=np.int32)
     order = order.astype(np.int32)
-    pos = 0
-    for s, e in zip(starts, ends):
-        k = int(key_sorted[s])
+    pos, s = 0, 0
+    for k, size in zip(keys.tolist(), sizes.tolist()):
+        e = s + size
         a, b = _lattice(k // (max_per_axis + 1), k % (max_per_axis + 1))
         n_lat = a.shape[1]
-        n = n_lat * (e - s)
+        n = n_lat * size
         if n_lat == 1:                                    # footprint within one sample: the point itself
             out[:, pos:pos + n] = p[:, s:e]
         else:
-            view = out[:, pos:pos + n].reshape(3, n_lat, e - s)                  # 3 × K × group, no copy
+            view = out[:, pos:pos + n].reshape(3, n_lat, size)                  # 3 × K × group, no copy
             np.multiply(a, su[:, None, s:e], out=view)
             view += b * sv[:, None, s:e]
             view += p[:, None, s:e]
-        out_pix[pos:pos + n] = np.tile(order[s:e], n_lat)
-        pos += n
+        out_pix[pos:pos + n].reshape(n_lat, size)[:] = order[s:e]
+        pos, s = pos + n, e
     return out, out_pix
 
 
 class TopDownGrid:
     """Square grid of ``size`` × ``size`` cells of ``cell_m`` metres whose origin can move with the vehicle.
 
-    Clearing, decaying and moving replace ``sums`` with a new array instead of writing into it, so a
+    Each frame's samples are binned into a small per-frame crop (the bounding box of what the camera saw,
+    plus a one-cell ring) and judged there: support, height spread, horizontal and flat shares, all from
+    this frame alone. In vehicle mode that verdict is the grid. In NED mode (:meth:`evaluate` with
+    ``frame="ned"``) the per-frame sums and verdicts are added to decayed totals: per cell the observation
+    weight (frames that saw it) and the landable weight (frames that judged it landable). Heights are never
+    compared across frames: the network's depth scale wanders by ~1 % from frame to frame (0.5-1 m at
+    60-80 m), far more than the 0.1 m spread limit, while within one frame it is consistent. A cell is
+    landable in NED when its decayed landable weight is at least ``min_vote_share`` of its observation
+    weight: one flickering verdict does not unmake a spot, and a cell seen clear for long, once seen blocked
+    in every frame, drops below the share after decay_s·ln(1/min_vote_share) (1 s with 2 s and 0.6).
+
+    Clearing, decaying and moving replace the arrays with new ones instead of writing into them, so a
     :class:`GridView` handed out earlier never changes under its reader.
     """
 
@@ -181,129 +199,196 @@ class TopDownGrid:
         self.size = max(3, int(math.ceil(2.0 * radius_m / cell_m)))
         self.north0_m = -self.size * self.cell_m / 2.0
         self.east0_m = -self.size * self.cell_m / 2.0
-        self.ref_down_m = 0.0
-        self.sums = np.zeros((_N_SUMS, self.size * self.size), dtype=np.float64)
+        self._buf = np.empty((_N_SUMS, 0), dtype=np.float64)    # per-frame binning buffer (never handed out)
+        self.clear()
+
+    # One float32 array holds the five sums and the two vote weights, so that decaying and moving the grid
+    # is one pass over memory (float32 is plenty: per-frame judging is done in float64 on the crop).
+    @property
+    def sums(self) -> np.ndarray:
+        return self._acc[:_N_SUMS]
+
+    @property
+    def votes(self) -> np.ndarray:
+        return self._acc[_N_SUMS:]
 
     def clear(self, ref_down_m: float = 0.0) -> None:
         """Forget everything. Heights are stored relative to ``ref_down_m`` (keeps Σh² well conditioned)."""
         self.ref_down_m = float(ref_down_m)
-        self.sums = np.zeros((_N_SUMS, self.size * self.size), dtype=np.float64)
+        s = self.size
+        self._acc = np.zeros((_N_SUMS + 2, s, s), dtype=np.float32)   # calloc: untouched pages cost nothing
+        self._factor = 1.0                                       # decay not yet applied to _acc
+        self._frame = None                                       # (row0, col0, sums crop) of the last add
+        self._fresh = True                                       # no GridView holds _acc yet
 
     def decay(self, factor: float) -> None:
-        self.sums = self.sums * min(max(factor, 0.0), 1.0)
+        """Scale all evidence by ``factor`` (applied lazily, together with the next move)."""
+        self._factor *= min(max(factor, 0.0), 1.0)
 
     def centre_on(self, north_m: float, east_m: float) -> None:
-        """Move the grid so that (north, east) is near its centre, keeping what overlaps (whole cells only)."""
+        """Move the grid so that (north, east) is near its centre, keeping what overlaps (whole cells only).
+
+        Also applies any pending decay; moving and decaying write one new array (never the old one).
+        """
         half = self.size * self.cell_m / 2.0
         n0 = math.floor((north_m - half) / self.cell_m) * self.cell_m
         e0 = math.floor((east_m - half) / self.cell_m) * self.cell_m
         dr = int(round((n0 - self.north0_m) / self.cell_m))
         dc = int(round((e0 - self.east0_m) / self.cell_m))
         self.north0_m, self.east0_m = n0, e0
-        if dr == 0 and dc == 0:
+        if dr != 0 or dc != 0 or self._factor != 1.0:
+            self._rebuild(dr, dc)
+
+    def _rebuild(self, dr: int, dc: int) -> None:
+        """new[:, r, c] = old[:, r + dr, c + dc] · pending decay (zeros where that falls outside)."""
+        s, a = self.size, self._acc
+        if dr == 0 and dc == 0:                           # decay only: one pass, no zeroing
+            self._acc, self._factor, self._fresh = a * np.float32(self._factor), 1.0, True
             return
-        s = self.size
-        old = self.sums.reshape(_N_SUMS, s, s)
-        new = np.zeros_like(old)
-        if abs(dr) < s and abs(dc) < s:
-            # new[r, c] = old[r + dr, c + dc]
-            new[:, max(0, -dr):s - max(0, dr), max(0, -dc):s - max(0, dc)] = \
-                old[:, max(0, dr):s - max(0, -dr), max(0, dc):s - max(0, -dc)]
-        self.sums = new.reshape(_N_SUMS, s * s)
+        if abs(dr) >= s or abs(dc) >= s:
+            self._acc, self._factor, self._fresh = np.zeros_like(a), 1.0, True
+            return
+        # Write every cell once: the overlap scaled, the uncovered strips zeroed (not zeros + copy: two passes).
+        new = np.empty_like(a)
+        r0, r1, c0, c1 = max(0, -dr), s - max(0, dr), max(0, -dc), s - max(0, dc)
+        np.multiply(a[:, r0 + dr:r1 + dr, c0 + dc:c1 + dc], np.float32(self._factor), out=new[:, r0:r1, c0:c1])
+        new[:, :r0] = 0.0
+        new[:, r1:] = 0.0
+        new[:, r0:r1, :c0] = 0.0
+        new[:, r0:r1, c1:] = 0.0
+        self._acc, self._factor, self._fresh = new, 1.0, True
 
     def add(self, north_m: np.ndarray, east_m: np.ndarray, down_m: np.ndarray, horizontal: np.ndarray,
             flat: np.ndarray, offset_ned_m=(0.0, 0.0, 0.0)) -> int:
-        """Bin samples (positions + ``offset_ned_m``, heights, votes in [0, 1]); returns how many fell inside.
+        """Bin one frame's samples (positions + ``offset_ned_m``, heights, votes in [0, 1]) for :meth:`evaluate`.
 
-        The offset (the vehicle's position in NED mode) is folded into float32 scalars so that the per-sample
-        arithmetic stays float32. Samples outside the grid go to one extra bin that is dropped, which is
-        cheaper than masking five arrays.
-        """
-        n_cells = self.size * self.size
-        scale = np.float32(1.0 / self.cell_m)
-        r = np.floor((north_m + np.float32(offset_ned_m[0] - self.north0_m)) * scale).astype(np.intp)
-        c = np.floor((east_m + np.float32(offset_ned_m[1] - self.east0_m)) * scale).astype(np.intp)
-        idx = r * self.size + c
-        idx[(r < 0) | (r >= self.size) | (c < 0) | (c >= self.size)] = n_cells
-        h = (down_m + np.float32(offset_ned_m[2] - self.ref_down_m)).astype(np.float64)
-        count = np.bincount(idx, minlength=n_cells + 1)
-        self.sums[0] += count[:n_cells]
-        self.sums[1] += np.bincount(idx, weights=h, minlength=n_cells + 1)[:n_cells]
-        self.sums[2] += np.bincount(idx, weights=h * h, minlength=n_cells + 1)[:n_cells]
-        self.sums[3] += np.bincount(idx, weights=horizontal, minlength=n_cells + 1)[:n_cells]
-        self.sums[4] += np.bincount(idx, weights=flat, minlength=n_cells + 1)[:n_cells]
-        return int(idx.shape[0] - count[n_cells])
-
-    def evaluate(self, rules: CellRules, frame: str) -> GridView:
-        """The landable mask and the clearance map (metres), as a snapshot.
-
-        Work is limited to the bounding box of observed cells plus a one-cell ring (the camera sees a wedge
-        of the grid): everything outside is unobserved, so not landable, and the ring makes the crop's
-        distance transform exact (the nearest outside cell is never nearer than the ring cell between).
-        The tests are written without divisions: share >= x  <=>  Σvotes >= x·count, and
-        spread <= σ  <=>  count·Σh² - (Σh)² <= (σ·count)².
+        Returns how many fell inside the grid. The offset (the vehicle's position in NED mode) is folded into
+        float32 scalars so that the per-sample arithmetic stays float32. Binning covers only the bounding box
+        of the samples (plus a one-cell ring for hole filling), not the whole grid; samples outside the grid
+        go to one extra bin that is dropped, which is cheaper than masking five arrays.
         """
         s = self.size
-        full = self.sums.reshape(_N_SUMS, s, s)
+        self._frame = None
+        if north_m.shape[0] == 0:
+            return 0
+        scale = np.float32(1.0 / self.cell_m)
+        r = np.floor((north_m + np.float32(offset_ned_m[0] - self.north0_m)) * scale).astype(np.int32)
+        c = np.floor((east_m + np.float32(offset_ned_m[1] - self.east0_m)) * scale).astype(np.int32)
+        r0, r1 = max(int(r.min()) - 1, 0), min(int(r.max()) + 2, s)
+        c0, c1 = max(int(c.min()) - 1, 0), min(int(c.max()) + 2, s)
+        if r0 >= r1 or c0 >= c1:
+            return 0
+        rows, cols = r1 - r0, c1 - c0
+        n_cells = rows * cols
+        r -= r0
+        c -= c0
+        # intp indices and float64 weights: np.bincount would convert anything else first.
+        idx = r.astype(np.intp) * cols + c
+        # Negative values wrap to huge unsigned ones: one comparison per axis tests both ends.
+        idx[(r.view(np.uint32) >= rows) | (c.view(np.uint32) >= cols)] = n_cells
+        h = (down_m + np.float32(offset_ned_m[2] - self.ref_down_m)).astype(np.float64)
+        if self._buf.shape[1] < n_cells + 1:                 # reused across frames: no fresh pages to fault in
+            self._buf = np.empty((_N_SUMS, n_cells + 1), dtype=np.float64)
+        crop = self._buf[:, :n_cells + 1]
+        crop[0] = np.bincount(idx, minlength=n_cells + 1)
+        crop[1] = np.bincount(idx, weights=h, minlength=n_cells + 1)
+        crop[2] = np.bincount(idx, weights=h * h, minlength=n_cells + 1)
+        crop[3] = np.bincount(idx, weights=horizontal.astype(np.float64), minlength=n_cells + 1)
+        crop[4] = np.bincount(idx, weights=flat.astype(np.float64), minlength=n_cells + 1)
+        inside = int(idx.shape[0] - crop[0, n_cells])
+        self._frame = (r0, c0, crop[:, :n_cells].reshape(_N_SUMS, rows, cols))
+        return inside
+
+    def evaluate(self, rules: CellRules, frame: str) -> GridView:
+        """Judge the frame added last and return the landable mask and the clearance map (metres), as a snapshot.
+
+        ``frame="vehicle"``: the grid is this frame alone. ``frame="ned"``: this frame's sums and verdicts are
+        added to the decayed totals (see the class docstring). Work is limited to the bounding box of observed
+        cells plus a one-cell ring: everything outside is unobserved, so not landable, and the ring makes the
+        crop's distance transform exact (the nearest outside cell is never nearer than the ring cell between).
+        """
+        s = self.size
         landable = np.zeros((s, s), dtype=bool)
         clearance = np.zeros((s, s), dtype=np.float32)
-        observed = full[0] >= rules.min_points_per_cell
+        if self._factor != 1.0:
+            self._rebuild(0, 0)
+        if self._frame is not None:
+            r0, c0, crop = self._frame
+            self._frame = None
+            crop = fill_sampling_holes(crop, rules.min_points_per_cell, rules.min_neighbours_to_fill, in_place=True)
+            ok = judge_cells(crop, rules)
+            win = (slice(r0, r0 + crop.shape[1]), slice(c0, c0 + crop.shape[2]))
+            if frame == "ned":
+                if not self._fresh:                           # a view holds _acc: do not write into it
+                    self._acc = self._acc.copy()
+                acc = self._acc[(slice(None),) + win]
+                acc[:_N_SUMS] += crop
+                acc[_N_SUMS] += crop[0] >= rules.min_points_per_cell
+                acc[_N_SUMS + 1] += ok
+            else:
+                self._acc = np.zeros(self._acc.shape, dtype=np.float32)
+                acc = self._acc[(slice(None),) + win]
+                acc[:_N_SUMS] = crop
+                acc[_N_SUMS] = crop[0] >= rules.min_points_per_cell
+                acc[_N_SUMS + 1] = ok
+        self._fresh = False                                   # handed out below: copy before writing into them
+        observed = self.sums[0] >= rules.min_points_per_cell
         rows = np.flatnonzero(observed.any(axis=1))
         cols = np.flatnonzero(observed.any(axis=0))
-        if rows.size == 0:
-            return GridView(frame, self.cell_m, self.north0_m, self.east0_m, self.ref_down_m, full, landable,
-                            clearance)
-        r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, s)
-        c0, c1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, s)
-        crop = fill_sampling_holes(full[:, r0:r1, c0:c1], rules.min_points_per_cell, rules.min_neighbours_to_fill)
-        count, s_h, s_h2, s_hor, s_flat = crop
-        ok = (count >= rules.min_points_per_cell) & (s_flat >= rules.min_flat_share * count)
-        if rules.use_hvo:
-            ok &= s_hor >= rules.min_horizontal_share * count
-        sigma_n = rules.max_height_spread_m * count
-        ok &= count * s_h2 - s_h * s_h <= sigma_n * sigma_n
-        landable[r0:r1, c0:c1] = ok
-        # The grid edge counts as unknown: nothing beyond it was looked at.
-        landable[0, :] = landable[-1, :] = False
-        landable[:, 0] = landable[:, -1] = False
-        clearance[r0:r1, c0:c1] = clearance_from_mask(landable[r0:r1, c0:c1], self.cell_m)
-        sums = full
-        if not np.shares_memory(crop, full):              # holes were filled: the view shows the filled sums
-            sums = full.copy()
-            sums[:, r0:r1, c0:c1] = crop
-        return GridView(frame, self.cell_m, self.north0_m, self.east0_m, self.ref_down_m, sums, landable, clearance)
+        if rows.size:
+            r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, s)
+            c0, c1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, s)
+            obs_w, land_w = self.votes[:, r0:r1, c0:c1]
+            landable[r0:r1, c0:c1] = observed[r0:r1, c0:c1] & (obs_w > 0) & (land_w >= rules.min_vote_share * obs_w)
+            # The grid edge counts as unknown: nothing beyond it was looked at.
+            landable[0, :] = landable[-1, :] = False
+            landable[:, 0] = landable[:, -1] = False
+            clearance[r0:r1, c0:c1] = clearance_from_mask(landable[r0:r1, c0:c1], self.cell_m)
+        return GridView(frame, self.cell_m, self.north0_m, self.east0_m, self.ref_down_m, self.sums, landable,
+                        clearance, self.votes)
 
 
-def fill_sampling_holes(sums: np.ndarray, min_count: float, min_neighbours: int) -> np.ndarray:
+def judge_cells(sums: np.ndarray, rules: CellRules) -> np.ndarray:
+    """Landable verdict of each cell of one frame's sums (5 × rows × cols), without divisions.
+
+    share >= x  <=>  Σvotes >= x·count, and spread <= σ  <=>  count·Σh² - (Σh)² <= (σ·count)².
+    """
+    count, s_h, s_h2, s_hor, s_flat = sums
+    ok = (count >= rules.min_points_per_cell) & (s_flat >= rules.min_flat_share * count)
+    if rules.use_hvo:
+        ok &= s_hor >= rules.min_horizontal_share * count
+    sigma_n = rules.max_height_spread_m * count
+    ok &= count * s_h2 - s_h * s_h <= sigma_n * sigma_n
+    return ok
+
+
+def fill_sampling_holes(sums: np.ndarray, min_count: float, min_neighbours: int, in_place: bool = False
+                        ) -> np.ndarray:
     """Give an empty cell amid observed ones the pooled sums of its 3×3 neighbourhood.
 
     Footprint samples are spaced about one cell apart, so a cell inside observed ground can miss every
     sample; left empty it would count as an obstacle. It gets the neighbours' pooled samples instead,
     whose height spread then includes the differences between neighbours (a step stays a step).
-    Returns ``sums`` itself when nothing is filled, else a filled copy. ``min_neighbours`` > 8 disables it.
+    Returns ``sums`` itself when nothing is filled, else a filled copy (or ``sums``, filled, with
+    ``in_place``). ``min_neighbours`` > 8 disables it.
     """
     if min_neighbours > 8:
         return sums
-    observed = sums[0] >= min_count
+    observed = (sums[0] >= min_count).view(np.uint8)
     rows, cols = observed.shape
-    padded = np.zeros((rows + 2, cols + 2), dtype=np.uint8)
-    padded[1:-1, 1:-1] = observed
-    neighbours = np.zeros((rows, cols), dtype=np.uint8)
-    for dr in (0, 1, 2):
-        for dc in (0, 1, 2):
-            if dr != 1 or dc != 1:
-                neighbours += padded[dr:dr + rows, dc:dc + cols]
-    candidate = ~observed & (neighbours >= min_neighbours)
+    # 3×3 sum with zeros outside; for an unobserved cell it is the number of observed neighbours.
+    neighbours = cv2.boxFilter(observed, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    candidate = (observed == 0) & (neighbours >= min_neighbours)
     candidate[0, :] = candidate[-1, :] = False            # border cells lack a full neighbourhood
     candidate[:, 0] = candidate[:, -1] = False
     holes = np.flatnonzero(candidate)
     if holes.size == 0:
         return sums
-    flat = np.ascontiguousarray(sums).reshape(sums.shape[0], -1)
+    flat = sums.reshape(sums.shape[0], -1)                 # a view unless the layout needs a copy
     pooled = np.zeros((sums.shape[0], holes.size), dtype=flat.dtype)
     for off in (-cols - 1, -cols, -cols + 1, -1, 1, cols - 1, cols, cols + 1):
         pooled += flat[:, holes + off]
-    out = flat.copy()
+    out = flat if in_place and np.shares_memory(flat, sums) else flat.copy()
     out[:, holes] = pooled
     return out.reshape(sums.shape)
 

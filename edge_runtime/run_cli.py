@@ -71,9 +71,10 @@ class RunConfig:
     max_frames: int = 0
     duration_s: float = 0.0
     overlap: bool = True
-    # FRAME by default: with the shipped model, fusion's NED grid merges frames whose heights differ by more
-    # than its spread limit (depth error ~1 % at 60-80 m), so it finds almost no spot; see --grid.
-    grid: GridMode = GridMode.FRAME
+    # NED by default: the landing grid stays put in the world while the vehicle moves (falls back to a fresh
+    # per-frame grid when telemetry has no position). Fusion accumulates per-frame verdicts there, not raw
+    # heights, so the model's frame-to-frame depth scale error (~1 % at 60-80 m) does not break it.
+    grid: GridMode = GridMode.NED
 
     def __post_init__(self):
         if self.threads < 1:
@@ -117,8 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     f = p.add_argument_group("landing")
     f.add_argument("--vehicle-radius", type=float, default=1.0, help="metres")
     f.add_argument("--margin", type=float, default=1.0, help="extra clearance, metres")
-    f.add_argument("--grid", default="frame", help="frame: a fresh landing grid around the vehicle every frame "
-                   "(default); ned: keep it in local NED across frames when the vehicle position is known")
+    f.add_argument("--grid", default="ned", help="ned: keep the landing grid in local NED across frames when the "
+                   "vehicle position is known (default); frame: a fresh grid around the vehicle every frame")
     k = p.add_argument_group("MAVLink")
     k.add_argument("--mav", help="pymavlink connection: udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT, /dev/ttyUSB0,57600")
     k.add_argument("--autopilot", default="ardupilot", help="ardupilot (BODY_FRD targets) or px4 (LOCAL_NED)")
