@@ -8,6 +8,7 @@ between modes of the same round, so a noisy shared machine moves all of them tog
 
     python -m benchmarks.bench_pipeline --frames 40 --rounds 3            # sim frames, shipped model
     python -m benchmarks.bench_pipeline --camera flight.mp4 --model m.onnx --out bench.json
+    python -m benchmarks.bench_pipeline --depth-model small_depth.int8.onnx --hvo-model small_hvo.int8.onnx
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ from edge_runtime.errors import InputError, run_cli
 from edge_runtime.fusion import FusionConfig, LandingFuser
 from edge_runtime.inference import OnnxModel
 from edge_runtime.mavlink_link import LinkConfig, MavlinkLink
-from edge_runtime.pipeline import JointInference, Pipeline, PipelineOptions, ScaleStage
+from edge_runtime.pipeline import JointInference, PairInference, Pipeline, PipelineOptions, ScaleStage
 from edge_runtime.scale import AltitudeScaleEstimator
 from edge_runtime.sources import Grabber, Reader, SourceConfig, SourceKind
 from edge_runtime.telemetry import TelemetryBuffer
@@ -40,6 +41,8 @@ MODES = ("model-only", "pipeline-overlap", "pipeline-sequential")
 class BenchConfig:
     model: Optional[str] = None
     camera: str = "sim"
+    depth_model: Optional[str] = None   # with hvo_model: a depth + HVO pair instead of one joint model
+    hvo_model: Optional[str] = None
     frames: int = 40
     width: int = 320
     height: int = 240
@@ -84,7 +87,7 @@ def load_frames(cfg: BenchConfig):
     return frames, Intrinsics.from_hfov(w, h), Mount()
 
 
-def model_only(inference: JointInference, frames: list) -> tuple:
+def model_only(inference, frames: list) -> tuple:
     from edge_runtime.messages import Frame
 
     lat = []
@@ -123,14 +126,21 @@ def bench(cfg: BenchConfig) -> dict:
 
     from edge_runtime.models import default_model_path
 
-    model = OnnxModel.load(cfg.model or default_model_path(), threads=cfg.threads)
-    inference = JointInference(model)
+    if cfg.depth_model and cfg.hvo_model:
+        inference = PairInference(OnnxModel.load(cfg.depth_model, threads=cfg.threads),
+                                  OnnxModel.load(cfg.hvo_model, threads=cfg.threads))
+        model = inference.depth_model
+    else:
+        model = OnnxModel.load(cfg.model or default_model_path(), threads=cfg.threads)
+        inference = JointInference(model)
     frames, intrinsics, mount = load_frames(cfg)
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # a listener, so LANDING_TARGET really goes out
     sink.bind(("127.0.0.1", 0))
     sink.setblocking(False)
-    for rgb, _ in frames[: cfg.warmup]:
-        model.predict(rgb)
+    from edge_runtime.messages import Frame
+
+    for i, (rgb, _) in enumerate(frames[: cfg.warmup]):
+        inference.predict(Frame(i, time.monotonic(), rgb))
     walls = {m: [] for m in MODES}
     cpus = {m: [] for m in MODES}   # process CPU seconds: the real cost, whatever else the machine runs
     lats = {m: [] for m in MODES}
@@ -158,7 +168,7 @@ def bench(cfg: BenchConfig) -> dict:
     for m in MODES[1:]:
         ratios = [walls["model-only"][i] / walls[m][i] for i in range(cfg.rounds)]
         rows[m]["ratio_to_model"] = round(float(np.median(ratios)), 3)
-    return {"config": asdict(cfg), "model": str(model.path), "frames": n, "frame_size": list(frames[0][0].shape[:2]),
+    return {"config": asdict(cfg), "model": inference.name, "frames": n, "frame_size": list(frames[0][0].shape[:2]),
             "model_input": [model.contract.input.height, model.contract.input.width], "targets_last_round": targets,
             "modes": rows}
 
@@ -187,7 +197,9 @@ def report(result: dict) -> str:
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
     p = argparse.ArgumentParser(prog="bench_pipeline", description=__doc__.split("\n\n")[0])
-    p.add_argument("--model")
+    p.add_argument("--model", help="joint depth+HVO model (default: the shipped edgenet)")
+    p.add_argument("--depth-model", help="depth model of a pair (with --hvo-model)")
+    p.add_argument("--hvo-model", help="HVO model of a pair (with --depth-model)")
     p.add_argument("--camera", default="sim", help="'sim' (rendered into memory first), a video or an image folder")
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--size", default="320x240", help="sim frame size WxH")
@@ -201,7 +213,9 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
         raise InputError(f"--size must look like 320x240, got '{a.size}'") from None
     if a.frames < 1 or a.rounds < 1:
         raise InputError("--frames and --rounds must be >= 1")
-    cfg = BenchConfig(a.model, a.camera, a.frames, w, h, a.threads, a.rounds, out=a.out)
+    if bool(a.depth_model) != bool(a.hvo_model):
+        raise InputError("--depth-model and --hvo-model go together")
+    cfg = BenchConfig(a.model, a.camera, a.depth_model, a.hvo_model, a.frames, w, h, a.threads, a.rounds, out=a.out)
     result = bench(cfg)
     print(report(result))
     if cfg.out:

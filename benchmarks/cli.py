@@ -26,6 +26,7 @@ from edge_runtime.scene import Scene
 
 from . import report as rep
 from .catalog import DEFAULT_MODELS, QUICK_MODELS, PrepareConfig, lookup, prepare
+from .goals import check_goals
 from .speed import SpeedConfig
 
 DEFAULT_OUT = Path("out/bench")   # /out/ is git-ignored
@@ -192,12 +193,14 @@ def run(config: BenchConfig) -> dict:
              "from each other"]
     if info["avx512_vnni"]:
         notes.append("this CPU has VNNI, the drone's may not: INT8 gains here can exceed the drone's")
-    return {"schema": rep.SCHEMA_VERSION, "created_unix_s": time.time(), "machine": info,
+    report = {"schema": rep.SCHEMA_VERSION, "created_unix_s": time.time(), "machine": info,
             "peak": {**peak.to_json(), "gflops": best, "before": peak_before.to_json(), "after": peak_after.to_json()},
             "settings": {"threads": config.threads, "scaling": config.scaling, "warmup": config.speed.warmup,
                          "iterations": config.speed.iterations, "max_seconds_per_model": config.speed.max_seconds,
                          "models": list(config.models)},
             "notes": notes, "rows": [rep.row_to_json(r) for r in rows]}
+    report["goals"] = [g.to_json() for g in check_goals(report)]
+    return report
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:

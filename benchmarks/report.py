@@ -110,6 +110,11 @@ def to_markdown(report: dict) -> str:
         for kind, ops in r.profile.items():
             top = ", ".join(f"{o['op_type']} {100 * o['share']:.0f} %" for o in ops[:4])
             lines.append(f"- {r.model} {KIND_LABEL.get(kind, kind)} kernel time: {top}")
+    from .goals import check_goals
+
+    goals = check_goals(report)
+    if goals:
+        lines += ["", "Goals (ratios from this run):"] + [g.line() for g in goals]
     lines += [f"- {n}" for n in report.get("notes", [])]
     lines += [f"- {r.model}: {n}" for r in rows for n in r.notes]
     return "\n".join(lines)

@@ -7,7 +7,7 @@ The mount is the rotation body <- camera given by the camera's Tait-Bryan angles
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 

@@ -154,13 +154,23 @@ def preprocess(rgb: np.ndarray, contract: ModelContract) -> np.ndarray:
     if rgb.shape[:2] != (spec.height, spec.width):
         shrinking = rgb.shape[0] > spec.height
         rgb = cv2.resize(rgb, (spec.width, spec.height), interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)
-    if spec.color == "BGR":
-        rgb = rgb[..., ::-1]
-    x = rgb.astype(np.float32) * np.float32(spec.scale)
-    x = (x - np.asarray(spec.mean, np.float32)) / np.asarray(spec.std, np.float32)
+    # (rgb*scale - mean)/std folded into one multiply-add per channel, written straight into the output layout:
+    # this runs on every frame, and the naive chain of whole-image temporaries cost ~1.5 ms at 240x320.
+    gain = np.float32(spec.scale) / np.asarray(spec.std, np.float32)
+    offset = -np.asarray(spec.mean, np.float32) / np.asarray(spec.std, np.float32)
+    order = (2, 1, 0) if spec.color == "BGR" else (0, 1, 2)
+    h, w = rgb.shape[:2]
     if spec.layout is Layout.NCHW:
-        x = x.transpose(2, 0, 1)
-    return np.ascontiguousarray(x[None])
+        x = np.empty((1, 3, h, w), np.float32)
+        for out_c, in_c in enumerate(order):
+            np.multiply(rgb[..., in_c], gain[out_c], out=x[0, out_c], casting="unsafe")
+            x[0, out_c] += offset[out_c]
+        return x
+    x = (rgb[..., ::-1] if spec.color == "BGR" else rgb).astype(np.float32)
+    # OpenCV applies a per-channel scalar in one pass; numpy's broadcast over a last axis of 3 is 2-3x slower.
+    cv2.multiply(x, (*map(float, gain), 0.0), dst=x)
+    cv2.add(x, (*map(float, offset), 0.0), dst=x)
+    return x[None]
 
 
 def _single_map(y: np.ndarray, layout: Layout, name: str) -> np.ndarray:

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from .camera import Intrinsics, Mount
-from .errors import InputError, run_cli
+from .errors import CliParser, InputError, run_cli
 from .mavlink_link import Autopilot, LinkConfig, MavlinkLink
 from .pipeline import JointInference, PairInference, Pipeline, PipelineOptions, ScaleStage
 from .sources import Grabber, SourceConfig, SourceKind
@@ -50,6 +50,7 @@ class RunConfig:
     camera_height: int = 0
     fps: float = 0.0
     loop: bool = False
+    poses: Optional[str] = None
     model: Optional[str] = None
     depth_model: Optional[str] = None
     hvo_model: Optional[str] = None
@@ -90,18 +91,27 @@ class RunConfig:
             raise InputError("--depth-model and --hvo-model go together (or use --model for a joint model)")
         if self.max_frames < 0 or self.duration_s < 0:
             raise InputError("--max-frames and --duration must be >= 0")
+        if self.fps < 0 or self.camera_width < 0 or self.camera_height < 0:
+            raise InputError(f"--fps, --camera-width and --camera-height must be >= 0 (0 = the camera's default), "
+                             f"got {self.fps}, {self.camera_width}, {self.camera_height}")
+        if self.int8 and (self.model or self.depth_model):
+            raise InputError("--int8 selects the shipped INT8 model; with --model/--depth-model give the INT8 file itself")
+        if self.poses and (self.camera == "sim" or self.camera.startswith("sim:")):
+            raise InputError("--poses replays a recorded flight's telemetry; the sim camera has its own")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="edge-run", description=__doc__.split("\n\n")[0],
+    p = CliParser(prog="edge-run", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     src = p.add_argument_group("camera")
     src.add_argument("--camera", default="sim", help="/dev/videoN or index, video file, image folder or glob, "
                      "rtsp://... or GStreamer pipeline, or 'sim' (default: the built-in synthetic flight)")
     src.add_argument("--camera-width", type=int, default=0)
     src.add_argument("--camera-height", type=int, default=0)
-    src.add_argument("--fps", type=float, default=0.0, help="camera frame rate to ask for")
-    src.add_argument("--loop", action="store_true", help="repeat a video file or image folder")
+    src.add_argument("--fps", type=float, default=0.0, help="camera frame rate to ask for (0 = its default)")
+    src.add_argument("--loop", action="store_true", help="repeat a video file or image folder (or the sim flight)")
+    src.add_argument("--poses", help="replay a recorded flight's poses.csv (edge-sim --flight) as telemetry, "
+                     "one row per frame")
     src.add_argument("--hfov", type=float, default=90.0, help="camera horizontal field of view, degrees")
     src.add_argument("--mount-pitch", type=float, default=-45.0, help="camera pitch relative to the body, degrees "
                      "(negative = below the horizon)")
@@ -129,15 +139,15 @@ def build_parser() -> argparse.ArgumentParser:
     o = p.add_argument_group("output")
     o.add_argument("--record", help="overlay video (.mp4)")
     o.add_argument("--log", dest="log_path", help="every decision as JSON lines")
-    o.add_argument("--max-frames", type=int, default=0)
-    o.add_argument("--duration", type=float, default=0.0, help="seconds")
+    o.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0 = no limit)")
+    o.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0 = no limit)")
     return p
 
 
 def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
     a = build_parser().parse_args(argv)
     return RunConfig(camera=a.camera, camera_width=a.camera_width, camera_height=a.camera_height, fps=a.fps,
-                     loop=a.loop, model=a.model, depth_model=a.depth_model, hvo_model=a.hvo_model, int8=a.int8,
+                     loop=a.loop, poses=a.poses, model=a.model, depth_model=a.depth_model, hvo_model=a.hvo_model, int8=a.int8,
                      calibration=a.calibration, altitude_scale=not a.no_altitude_scale, mav=a.mav,
                      autopilot=Autopilot.from_string(a.autopilot), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
                      mav_key=a.mav_key, vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
@@ -178,16 +188,18 @@ def run(cfg: RunConfig, out=None) -> int:
     models = [getattr(inference, n) for n in ("model", "depth_model") if hasattr(inference, n)]
     calibration = load_calibration(cfg.calibration, models[0].sha256) if cfg.calibration else None
     src = SourceConfig(camera=cfg.camera, kind=SourceKind.from_string(cfg.camera), width=cfg.camera_width,
-                       height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop)
+                       height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "")
     fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m)
     telemetry = TelemetryBuffer()
     link = None
     with contextlib.ExitStack() as stack:
         if cfg.mav:
-            # The simulator's perfect telemetry matches its frames; an autopilot's would describe another flight.
+            # The simulator's (or a replayed flight's) telemetry matches its frames; an autopilot's would
+            # describe another flight.
             link_telemetry = telemetry
-            if src.kind is SourceKind.SIM:
-                log.info("sim camera: using the simulator's telemetry; the autopilot's is not used")
+            if src.kind is SourceKind.SIM or cfg.poses:
+                log.info("%s: using its own telemetry; the autopilot's is not used",
+                         "sim camera" if src.kind is SourceKind.SIM else "--poses replay")
                 link_telemetry = TelemetryBuffer()
             link = MavlinkLink(LinkConfig(cfg.mav, cfg.autopilot, cfg.mav_sysid, cfg.mav_compid, cfg.mav_key),
                                link_telemetry).start()

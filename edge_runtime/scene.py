@@ -164,23 +164,7 @@ class Scene:
     def poses(self) -> dict:
         """frame id (str, zero-padded like the files) -> Pose; empty when there is no poses.csv."""
         path = self.path / "poses.csv"
-        if not path.exists():
-            return {}
-        out = {}
-        with open(path, newline="") as fh:
-            reader = csv.DictReader(fh)
-            missing = [f for f in POSE_FIELDS if f not in (reader.fieldnames or [])]
-            if missing:
-                raise SceneError(f"{path}: missing column(s) {', '.join(missing)}; expected {','.join(POSE_FIELDS)}")
-            for line, row in enumerate(reader, start=2):
-                try:
-                    pose = Pose(int(row["frame"]), float(row["t"]),
-                                (float(row["north"]), float(row["east"]), float(row["down"])),
-                                float(row["roll"]), float(row["pitch"]), float(row["yaw"]), float(row["agl"]))
-                except (TypeError, ValueError) as exc:
-                    raise SceneError(f"{path}:{line}: malformed pose row ({exc})") from None
-                out[f"{pose.frame:06d}"] = pose
-        return out
+        return {f"{p.frame:06d}": p for p in read_poses_csv(path)} if path.exists() else {}
 
     def require(self, depth: bool = False, hvo: bool = False, purpose: str = "this command") -> None:
         """Fail fast when ground truth that ``purpose`` needs is missing."""
@@ -188,6 +172,27 @@ class Scene:
             if needed and not (self.path / name).is_dir():
                 raise SceneError(f"scene {self.path} has no {name}/ folder, which {purpose} needs "
                                  f"(expected {what}, ... beside rgb/)")
+
+
+def read_poses_csv(path: os.PathLike | str) -> List[Pose]:
+    """The rows of a poses.csv (DESIGN.md §4) in file order; a missing column or bad row is a SceneError."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"poses file {path} does not exist (expected a poses.csv: {','.join(POSE_FIELDS)})")
+    out = []
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        missing = [f for f in POSE_FIELDS if f not in (reader.fieldnames or [])]
+        if missing:
+            raise SceneError(f"{path}: missing column(s) {', '.join(missing)}; expected {','.join(POSE_FIELDS)}")
+        for line, row in enumerate(reader, start=2):
+            try:
+                out.append(Pose(int(row["frame"]), float(row["t"]),
+                                (float(row["north"]), float(row["east"]), float(row["down"])),
+                                float(row["roll"]), float(row["pitch"]), float(row["yaw"]), float(row["agl"])))
+            except (TypeError, ValueError) as exc:
+                raise SceneError(f"{path}:{line}: malformed pose row ({exc})") from None
+    return out
 
 
 class SceneWriter:

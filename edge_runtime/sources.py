@@ -26,7 +26,7 @@ from typing import Callable, List, Optional
 import numpy as np
 
 from .errors import InputError
-from .messages import Frame
+from .messages import Frame, VehicleState
 
 log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
@@ -69,6 +69,7 @@ class SourceConfig:
     height: int = 0
     fps: float = 0.0
     loop: bool = False
+    poses_csv: str = ""  # replay a recorded flight's poses.csv as telemetry, one row per frame
     reopen_min_s: float = 0.5
     reopen_max_s: float = 5.0
 
@@ -223,12 +224,53 @@ class SimReader(Reader):
         self.camera.close()
 
 
+class PoseReplayReader(Reader):
+    """A recorded input replayed with its ground-truth poses (an ``edge-sim --flight`` poses.csv) as telemetry.
+
+    Row k of the file describes frame k of the input; ``last_state`` is that frame's vehicle state, which the
+    grabber stamps with the frame's capture time. Frames past the end of the file get no state.
+    """
+
+    def __init__(self, inner: Reader, states: List[VehicleState]):
+        self.inner, self.states = inner, states
+        self.name = inner.name
+        self.last_state: Optional[VehicleState] = None
+        self._index = 0
+
+    @staticmethod
+    def states_from_csv(path: str) -> List[VehicleState]:
+        from .camera import Attitude
+        from .scene import read_poses_csv
+
+        return [VehicleState(time_s=p.t_s, attitude=Attitude(p.roll_rad, p.pitch_rad, p.yaw_rad),
+                             position_ned_m=np.asarray(p.ned_m, dtype=np.float64), agl_m=p.agl_m,
+                             agl_source="poses.csv") for p in read_poses_csv(path)]
+
+    def read(self) -> Optional[np.ndarray]:
+        rgb = self.inner.read()
+        if rgb is not None:
+            self.last_state = self.states[self._index] if self._index < len(self.states) else None
+            self._index += 1
+        return rgb
+
+    def close(self) -> None:
+        self.inner.close()
+
+
 def open_reader(config: SourceConfig) -> Reader:
     if config.kind is SourceKind.FOLDER:
-        return ImageFolderReader(config)
-    if config.kind is SourceKind.SIM:
+        reader: Reader = ImageFolderReader(config)
+    elif config.kind is SourceKind.SIM:
         return SimReader(config)
-    return VideoReader(config)
+    else:
+        reader = VideoReader(config)
+    if config.poses_csv:
+        try:
+            return PoseReplayReader(reader, PoseReplayReader.states_from_csv(config.poses_csv))
+        except Exception:
+            reader.close()
+            raise
+    return reader
 
 
 class Grabber:
@@ -303,6 +345,10 @@ class Grabber:
                     self.reader = None
                     continue
                 break
+            if not self.config.kind.live:
+                # Recorded input has no real capture time: stamp it when the pipeline can take it, so a slow
+                # model does not make every played-back frame "stale".
+                self._wait_for_free_slot()
             frame = Frame(self._next_id, time.monotonic(), rgb, self.config.camera)
             state = getattr(self.reader, "last_state", None)
             if state is not None and self.telemetry is not None:
@@ -325,15 +371,17 @@ class Grabber:
             log.warning("camera %s is back", self.config.camera)
         return True
 
+    def _wait_for_free_slot(self) -> None:
+        """Recorded input: wait for the pipeline, so that every frame is processed."""
+        with self._cond:
+            while self._slot is not None and not self._stop.is_set():
+                self._cond.wait(0.1)
+
     def _publish(self, frame: Frame) -> None:
         with self._cond:
             if self.config.kind.live:
                 if self._slot is not None:
                     self.drops += 1
-            else:
-                # Recorded input: wait for the pipeline, so that every frame is processed.
-                while self._slot is not None and not self._stop.is_set():
-                    self._cond.wait(0.1)
             self._slot = frame
             self.grabbed += 1
             self._cond.notify_all()

@@ -115,3 +115,21 @@ def test_profile_sums_kernel_time_per_op_type(tmp_path):
               {"cat": "Session", "name": "model_run"}]
     conv, add = summarise(events, runs_after_warmup=1, warmup=1)
     assert (conv.op_type, conv.total_ms, conv.share, conv.nodes) == ("Conv", 3.0, 0.75, 1) and add.total_ms == 1.0
+
+
+def test_goal_checks_say_met_or_missed_by_how_much():
+    from benchmarks.goals import check_goals
+
+    def row(model, fp32, int8, torch, share, agree=1.0):
+        t = {k: {"images_per_s": v} for k, v in (("ort-fp32", fp32), ("ort-int8", int8), ("torch", torch))}
+        return {"model": model, "timings": t, "int8_vs_fp32": int8 / fp32, "int8_vs_torch": int8 / torch,
+                "fp32_share_of_peak": share, "int8_agreement": agree,
+                "profile": {"ort-int8": [{"op_type": "Transpose", "share": 0.35}]}}
+
+    report = {"rows": [row("safeuav-small", 35.0, 47.6, 16.0, 0.73), row("edgenet", 113.0, 207.0, 42.0, 0.63)]}
+    checks = {(c.model, c.goal): c for c in check_goals(report)}
+    ratio = checks[("safeuav-small", "ORT INT8 / ORT FP32")]
+    assert not ratio.met and "MISSED by 3 %" in ratio.line() and "Transpose 35 %" in ratio.line()
+    assert checks[("safeuav-small", "ORT INT8 / PyTorch eager")].met
+    assert checks[("edgenet", "ORT INT8 images/s / SafeUAV-Net-Small INT8")].value == pytest.approx(207 / 47.6)
+    assert ("edgenet", "ORT FP32 share of the matmul peak") not in checks   # not a conv-heavy published model

@@ -54,3 +54,21 @@ def test_bad_image_is_rejected(tmp_path):
     model = OnnxModel.load(tiny_onnx_model(tmp_path / "m.onnx"))
     with pytest.raises(InputError, match="H×W×3"):
         model.predict(np.zeros((16, 24), np.uint8))
+
+
+@pytest.mark.parametrize("layout", [Layout.NCHW, Layout.NHWC])
+@pytest.mark.parametrize("color", ["RGB", "BGR"])
+def test_preprocess_matches_the_contract_formula(layout, color):
+    from edge_runtime.contract import HvoSpec, InputSpec
+    from edge_runtime.inference import preprocess
+
+    mean, std = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
+    contract = ModelContract("t", Task.HVO, InputSpec("image", layout, 12, 20, color=color, mean=mean, std=std),
+                             hvo=HvoSpec("h"))
+    rgb = np.random.default_rng(1).integers(0, 256, (12, 20, 3), dtype=np.uint8)
+    x = preprocess(rgb, contract)
+    src = rgb[..., ::-1] if color == "BGR" else rgb
+    expected = (src / 255.0 - np.array(mean)) / np.array(std)
+    expected = expected.transpose(2, 0, 1)[None] if layout is Layout.NCHW else expected[None]
+    assert x.dtype == np.float32 and x.flags["C_CONTIGUOUS"]
+    np.testing.assert_allclose(x, expected, atol=1e-5)

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 from edge_runtime.calibration_file import SceneCalibration
@@ -142,3 +143,30 @@ def test_default_run_flies_the_synthetic_flight_with_the_shipped_model(tmp_path,
     assert "edge-run: sim -> edgenet" in out and "pipeline images/s" in out
     decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
     assert len(decisions) == 6 and all(d["telemetry"] and d["agl_m"] > 0 for d in decisions)
+
+
+def test_poses_replay_gives_ned_targets_for_a_recorded_flight(assets, tmp_path):
+    """--poses: a recorded flight's poses.csv is its telemetry, one row per frame (vehicle 10 m above ground)."""
+    poses = tmp_path / "poses.csv"
+    rows = ["frame,t,north,east,down,roll,pitch,yaw,agl"]
+    rows += [f"{k},{k / 10:.1f},{100 + k},50,-10,0,0,0,10" for k in range(10)]
+    poses.write_text("\n".join(rows) + "\n")
+    log_path = tmp_path / "t.jsonl"
+    assert main(["--camera", assets["video"], "--model", assets["model"], "--poses", str(poses),
+                 "--vehicle-radius", "0.5", "--margin", "0.5", "--log", str(log_path)]) == 0
+    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    assert len(decisions) == 10 and all(d["valid"] for d in decisions)
+    for d in decisions:
+        north, east, down = d["ned_m"]
+        x, y, z = d["body_frd_m"]
+        assert abs(down) < 0.3                                  # on the ground (down = 0 in local NED)
+        # level flight, yaw 0: local NED = the replayed vehicle position of that frame + the body vector
+        np.testing.assert_allclose([north, east, down], [100 + d["frame"] + x, 50 + y, -10 + z], atol=0.05)
+        assert d["scale_source"].startswith("altitude")         # the replayed height above ground gave the scale
+
+
+def test_poses_file_errors_are_one_line(assets, tmp_path, capsys):
+    bad = tmp_path / "poses.csv"
+    bad.write_text("frame,t,north\n0,0,1\n")
+    assert main(["--camera", assets["video"], "--model", assets["model"], "--poses", str(bad)]) == 2
+    assert "missing column(s)" in capsys.readouterr().err

@@ -1,0 +1,66 @@
+"""The project's speed goals, checked against a finished report (issues 5 and 7; DESIGN.md §9).
+
+Each check says whether the goal was met and, when not, by how much and where the time goes (the top
+kernels of the profile when ``edge-bench --profile`` recorded one).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import List, Optional
+
+CONV_HEAVY = ("densedepth", "safeuav-large", "safeuav-small", "adabins-80", "adabins-256")
+
+
+@dataclass(frozen=True)
+class GoalCheck:
+    model: str
+    goal: str
+    value: float
+    target: float
+    met: bool
+    detail: str = ""
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    def line(self) -> str:
+        verdict = "met" if self.met else f"MISSED by {100 * (1 - self.value / self.target):.0f} %"
+        return f"- goal {self.model}: {self.goal}: {self.value:.2f} vs {self.target:.2f} -> {verdict}" + (
+            f" ({self.detail})" if self.detail and not self.met else "")
+
+
+def _at_least(model: str, goal: str, value: Optional[float], target: float, detail: str = "") -> List[GoalCheck]:
+    if value is None:
+        return []
+    return [GoalCheck(model, goal, float(value), target, value >= target, detail)]
+
+
+def _top_ops(row: dict, kind: str) -> str:
+    ops = row.get("profile", {}).get(kind) or []
+    return ", ".join(f"{o['op_type']} {100 * o['share']:.0f} %" for o in ops[:3])
+
+
+def check_goals(report: dict) -> List[GoalCheck]:
+    rows = {r["model"]: r for r in report["rows"]}
+    checks: List[GoalCheck] = []
+    small = rows.get("safeuav-small")
+    if small:
+        why = _top_ops(small, "ort-int8")
+        why = f"INT8 kernel time: {why}" if why else "run with --profile to see where the INT8 time goes"
+        checks += _at_least("safeuav-small", "ORT INT8 / ORT FP32", small.get("int8_vs_fp32"), 1.4, why)
+        checks += _at_least("safeuav-small", "ORT INT8 / PyTorch eager", small.get("int8_vs_torch"), 2.5, why)
+        checks += _at_least("safeuav-small", "INT8 labels agreeing with FP32", small.get("int8_agreement"), 0.9)
+    for name in CONV_HEAVY:
+        row = rows.get(name)
+        if row:
+            why = _top_ops(row, "ort-fp32")
+            checks += _at_least(name, "ORT FP32 share of the matmul peak", row.get("fp32_share_of_peak"), 0.5,
+                                f"FP32 kernel time: {why}" if why else "")
+    edge = rows.get("edgenet")
+    if edge:
+        int8 = edge.get("timings", {}).get("ort-int8", {}).get("images_per_s")
+        checks += _at_least("edgenet", "ORT INT8 images/s", int8, 60.0)
+        small_int8 = small.get("timings", {}).get("ort-int8", {}).get("images_per_s") if small else None
+        if int8 and small_int8:
+            checks += _at_least("edgenet", "ORT INT8 images/s / SafeUAV-Net-Small INT8", int8 / small_int8, 1.0)
+    return checks
