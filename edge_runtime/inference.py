@@ -30,6 +30,9 @@ class SessionConfig:
 
     threads: int = 2
     providers: Tuple[str, ...] = ("CPUExecutionProvider",)
+    # ONNX Runtime's worker threads spin after each run by default. On 2 cores that steals the CPU from
+    # whatever runs next: fusion in the pipeline, or the second model of a depth + HVO pair.
+    spin: bool = False
 
 
 def file_sha256(path: os.PathLike | str) -> str:
@@ -57,6 +60,8 @@ def _open_session(path: Path, config: SessionConfig):
     opts.inter_op_num_threads = 1
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.log_severity_level = 3
+    if not config.spin:
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     try:
         return ort.InferenceSession(str(path), sess_options=opts, providers=list(config.providers))
     except Exception as exc:  # onnxruntime raises its own untyped errors for unreadable files
