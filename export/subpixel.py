@@ -127,8 +127,114 @@ def rewrite_conv_transposes(model) -> int:
         count += 1
     del model.graph.node[:]
     model.graph.node.extend(new_nodes)
+    fold_crop_pad(model)
     used = {i for n in model.graph.node for i in n.input}
     keep = [i for i in model.graph.initializer if i.name in used]   # the ConvTranspose weights are gone now
     del model.graph.initializer[:]
     model.graph.initializer.extend(keep)
     return count
+
+
+def fold_crop_pad(model) -> int:
+    """Fold ``crop -> [Relu] -> zero Pad back to the uncropped size`` into ``[Relu] -> Mul(0/1 mask)``.
+
+    SafeUAV-Net pads each transposed convolution's output by one zero row and column. After the rewrite
+    above that becomes a crop of the depth-to-space output immediately padded back: two copies of the whole
+    map, each of which also forces ONNX Runtime to change layout around it in the int8 graph. Multiplying by a
+    mask whose cropped rows and columns are 0 is the same function in one element-wise op (mask 0/1 quantizes
+    exactly). Only exact matches are folded (constant pads, zero value, restoring exactly what was cropped).
+    Returns the number folded.
+    """
+    from onnx import numpy_helper
+
+    inits = {i.name: i for i in model.graph.initializer}
+    consumers: Dict[str, List] = {}
+    for n in model.graph.node:
+        for i in n.input:
+            consumers.setdefault(i, []).append(n)
+    graph_outputs = {o.name for o in model.graph.output}
+    removed, stale, count = set(), set(), 0
+    for crop in list(model.graph.node):
+        if crop.op_type != "Slice" or not crop.name.endswith("_subpixel_crop"):
+            continue
+        chain = _single_consumer_chain(crop.output[0], consumers, graph_outputs)
+        if chain is None:
+            continue
+        relu, pad = chain
+        folded = _crop_pad_mask(crop, pad, inits)
+        if folded is None:
+            continue
+        mask_name = f"{crop.name}_mask"
+        model.graph.initializer.append(numpy_helper.from_array(folded, mask_name))
+        if relu is not None:
+            relu.input[0] = crop.input[0]
+            source = relu.output[0]
+            stale.add(source)   # its recorded shape was the cropped one
+        else:
+            source = crop.input[0]
+        pad.op_type, pad.name = "Mul", f"{crop.name}_as_mask"
+        del pad.input[:]
+        pad.input.extend([source, mask_name])
+        del pad.attribute[:]
+        removed.add(id(crop))
+        count += 1
+    if count:
+        infos = [vi for vi in model.graph.value_info if vi.name not in stale]
+        del model.graph.value_info[:]
+        model.graph.value_info.extend(infos)
+        kept = [n for n in model.graph.node if id(n) not in removed]
+        del model.graph.node[:]
+        model.graph.node.extend(kept)
+        used = {i for n in model.graph.node for i in n.input}
+        keep = [i for i in model.graph.initializer if i.name in used]
+        del model.graph.initializer[:]
+        model.graph.initializer.extend(keep)
+    return count
+
+
+def _single_consumer_chain(name: str, consumers: Dict[str, List], graph_outputs: set):
+    """(relu or None, pad) when ``name`` feeds exactly one Pad, optionally through exactly one Relu."""
+    if name in graph_outputs or len(consumers.get(name, [])) != 1:
+        return None
+    node = consumers[name][0]
+    relu = None
+    if node.op_type == "Relu":
+        relu = node
+        if relu.output[0] in graph_outputs or len(consumers.get(relu.output[0], [])) != 1:
+            return None
+        node = consumers[relu.output[0]][0]
+    return (relu, node) if node.op_type == "Pad" else None
+
+
+def _crop_pad_mask(crop, pad, inits) -> Optional[np.ndarray]:
+    """The 0/1 mask [1, 1, H, W] equivalent to ``crop`` then ``pad``, or None when they are not inverse."""
+    from onnx import helper, numpy_helper
+
+    attrs = {a.name: helper.get_attribute_value(a) for a in pad.attribute}
+    if attrs.get("mode", b"constant") not in (b"constant", "constant") or len(pad.input) < 2:
+        return None
+    if len(pad.input) > 2 and pad.input[2]:
+        value = inits.get(pad.input[2])
+        if value is None or float(numpy_helper.to_array(value).ravel()[0]) != 0.0:
+            return None
+    if len(pad.input) > 3 and pad.input[3]:
+        return None   # explicit axes: not the plain 4-D form
+    pads_init, ends_init = inits.get(pad.input[1]), inits.get(crop.input[2])
+    starts_init, axes_init = inits.get(crop.input[1]), inits.get(crop.input[3]) if len(crop.input) > 3 else None
+    if pads_init is None or ends_init is None or starts_init is None or axes_init is None:
+        return None
+    pads = numpy_helper.to_array(pads_init).astype(np.int64).ravel()
+    starts, ends = numpy_helper.to_array(starts_init).ravel(), numpy_helper.to_array(ends_init).ravel()
+    if len(pads) != 8 or list(numpy_helper.to_array(axes_init).ravel()) != [2, 3] or any(starts != 0):
+        return None
+    if any(pads[:6] != 0):
+        return None   # padding anywhere but the end of H and W
+    out_h, out_w = int(ends[0]), int(ends[1])
+    full_h, full_w = out_h + int(pads[6]), out_w + int(pads[7])
+    shape4 = inits.get(crop.name[: -len("_crop")] + "_shape4")   # the depth-to-space output [0, C, H, W]
+    if shape4 is None or list(numpy_helper.to_array(shape4).ravel()[2:]) != [full_h, full_w]:
+        return None   # the pad does not restore exactly what the crop removed
+    mask = np.ones((1, 1, full_h, full_w), np.float32)
+    mask[..., out_h:, :] = 0.0
+    mask[..., :, out_w:] = 0.0
+    return mask

@@ -53,3 +53,37 @@ def test_grouped_conv_transpose_is_left_alone():
     model = _conv_transpose_model(3, 2, [1, 1, 1, 1], 0, group=2)
     assert rewrite_conv_transposes(model) == 0
     assert [n.op_type for n in model.graph.node] == ["ConvTranspose"]
+
+
+def _safeuav_small_up_block(pad_end):
+    """SafeUAV-Net-Small's up block: ConvTranspose(k3, s2, p1) -> Relu -> zero Pad at the end of H and W."""
+    model = _conv_transpose_model(3, 2, [1, 1, 1, 1], 0)
+    model.graph.node[0].output[0] = "up_out"
+    model.graph.initializer.append(numpy_helper.from_array(np.array([0, 0, 0, 0, 0, 0, pad_end, pad_end],
+                                                                    np.int64), "pads"))
+    model.graph.node.extend([helper.make_node("Relu", ["up_out"], ["act"]),
+                             helper.make_node("Pad", ["act", "pads"], ["y"], mode="constant")])
+    return model
+
+
+def test_crop_then_zero_pad_is_folded_into_a_mask_exactly():
+    model = _safeuav_small_up_block(pad_end=1)      # 2H-1 -> padded back to 2H: the crop is undone
+    x = np.random.default_rng(5).standard_normal((1, 4, 5, 7)).astype(np.float32)
+    ref = _run(model, x)
+    assert rewrite_conv_transposes(model) == 1
+    ops = [n.op_type for n in model.graph.node]
+    assert "Slice" not in ops and "Pad" not in ops and ops.count("Mul") == 1
+    got = _run(model, x)
+    assert got.shape == ref.shape == (1, 6, 10, 14)
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    assert (got[..., -1, :] == 0).all() and (got[..., :, -1] == 0).all()
+
+
+def test_a_pad_that_does_not_undo_the_crop_is_left_alone():
+    model = _safeuav_small_up_block(pad_end=2)      # pads more than the crop removed: not the same function
+    x = np.random.default_rng(6).standard_normal((1, 4, 5, 7)).astype(np.float32)
+    ref = _run(model, x)
+    assert rewrite_conv_transposes(model) == 1
+    ops = [n.op_type for n in model.graph.node]
+    assert "Slice" in ops and "Pad" in ops and "Mul" not in ops
+    np.testing.assert_allclose(_run(model, x), ref, atol=1e-5)
