@@ -15,11 +15,11 @@ import math
 import signal
 import sys
 from dataclasses import dataclass
-from enum import Enum
 from pathlib import Path
 from typing import Optional, Sequence
 
 from .camera import Intrinsics, Mount
+from .choices import ChoiceEnum
 from .errors import CliParser, InputError, run_cli
 from .mavlink_link import Autopilot, LinkConfig, MavlinkLink
 from .pipeline import JointInference, PairInference, Pipeline, PipelineOptions, ScaleStage
@@ -29,16 +29,13 @@ from .telemetry import TelemetryBuffer
 log = logging.getLogger("edge-run")
 
 
-class GridMode(str, Enum):
+class GridMode(ChoiceEnum):
     NED = "ned"        # the landing grid is kept in local NED across frames (needs LOCAL_POSITION_NED)
     FRAME = "frame"    # a fresh vehicle-centred grid every frame
 
     @classmethod
-    def from_string(cls, value: str) -> "GridMode":
-        try:
-            return cls(value.lower())
-        except ValueError:
-            raise InputError(f"unsupported --grid '{value}'; expected one of: ned, frame") from None
+    def _label(cls) -> str:
+        return "--grid"
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from edge_runtime.errors import InputError
 from export.checkpoints import load_state_dict_strict, read_checkpoint, source_info, strip_prefix, unwrap_state_dict
 
 from .efficientnet import EFFICIENTNET_B5_TF, EfficientNet
-from .registry import ArchSpec
+from .registry import ArchSpec, require_task
 
 INPUT_NAME = "image"
 OUTPUT_BIN_EDGES = "bin_edges"
@@ -238,8 +238,7 @@ def load_checkpoint(module: nn.Module, path) -> dict:
 
 
 def _check_task(task: Task) -> None:
-    if task is not Task.DEPTH:
-        raise InputError(f"adabins has only a depth head; task '{task}' is not available (expected 'depth')")
+    require_task("adabins", task, (Task.DEPTH,))
 
 
 ARCH_SPEC = ArchSpec(

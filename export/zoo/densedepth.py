@@ -19,12 +19,11 @@ from torch import nn
 from torch.nn import functional as F
 
 from edge_runtime.contract import DepthConvention, DepthSpec, InputSpec, Layout, ModelContract, Task
-from edge_runtime.errors import InputError
 
 from ..checkpoints import (drop_keys, load_state_dict_strict, read_checkpoint, source_info, strip_prefix,
                            unwrap_state_dict)
 from .densenet import DENSENET169, DenseNet
-from .registry import ArchSpec
+from .registry import ArchSpec, require_task
 
 OUTPUT_DEPTH = "depth"
 INPUT_NAME = "image"
@@ -128,8 +127,7 @@ def load_checkpoint(module: nn.Module, path) -> dict:
 
 
 def _check_task(task: Task) -> None:
-    if task is not Task.DEPTH:
-        raise InputError(f"densedepth has only a depth head; task '{task}' is not available (expected 'depth')")
+    require_task("densedepth", task, (Task.DEPTH,))
 
 
 ARCH_SPEC = ArchSpec(

@@ -2,10 +2,18 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, Tuple
 
-from edge_runtime.contract import ModelContract, Task
+from edge_runtime.contract import Task
+from edge_runtime.errors import InputError
+
+
+def require_task(arch: str, task: Task, available: Tuple[Task, ...]) -> None:
+    """One clear error when a network is asked for a head it does not have."""
+    if task not in available:
+        heads = " / ".join(t.value for t in available)
+        expected = ", ".join(f"'{t.value}'" for t in available)
+        raise InputError(f"{arch} has only a {heads} head; task '{task}' is not available (expected {expected})")
 
 
 @dataclass(frozen=True)
