@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -59,14 +60,11 @@ class Intrinsics:
         return Intrinsics(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, self.dist)
 
     def pixel_rays(self) -> np.ndarray:
-        """H×W×3 float32 array of K⁻¹[u+0.5, v+0.5, 1] (z = 1) for every pixel centre."""
-        u = (np.arange(self.width, dtype=np.float64) + 0.5 - self.cx) / self.fx
-        v = (np.arange(self.height, dtype=np.float64) + 0.5 - self.cy) / self.fy
-        rays = np.empty((self.height, self.width, 3), dtype=np.float32)
-        rays[..., 0] = u[None, :]
-        rays[..., 1] = v[:, None]
-        rays[..., 2] = 1.0
-        return rays
+        """H×W×3 float32 array of K⁻¹[u+0.5, v+0.5, 1] (z = 1) for every pixel centre.
+
+        Cached per intrinsics (the per-frame stages ask for the same table every frame); read-only.
+        """
+        return _pixel_rays(self)
 
     def backproject(self, depth_m: np.ndarray) -> np.ndarray:
         """Planar z-depth H×W -> camera-frame points H×W×3 (NaN stays NaN)."""
@@ -89,6 +87,18 @@ class Intrinsics:
     def from_json(d: dict) -> "Intrinsics":
         return Intrinsics(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
                           float(d["cx"]), float(d["cy"]), tuple(float(v) for v in d.get("dist", ()) or ()))
+
+
+@lru_cache(maxsize=16)
+def _pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
+    u = (np.arange(intrinsics.width, dtype=np.float64) + 0.5 - intrinsics.cx) / intrinsics.fx
+    v = (np.arange(intrinsics.height, dtype=np.float64) + 0.5 - intrinsics.cy) / intrinsics.fy
+    rays = np.empty((intrinsics.height, intrinsics.width, 3), dtype=np.float32)
+    rays[..., 0] = u[None, :]
+    rays[..., 1] = v[:, None]
+    rays[..., 2] = 1.0
+    rays.setflags(write=False)
+    return rays
 
 
 def rot_x(a: float) -> np.ndarray:
