@@ -1,6 +1,6 @@
 """Training any network of the zoo on scene folders, then exporting it with the model contract.
 
-    cfg = TrainConfig(arch="edgenet", train_scenes=("scenes/sub1",), val_scene="scenes/sub9", out_dir="runs/a",
+    cfg = TrainConfig(arch="edgenet", train_scenes=("scenes/sub1",), val_scenes=("scenes/sub9",), out_dir="runs/a",
                       epochs=20, batch=8, height=120, width=160)
     result = train(cfg)            # checkpoints out_dir/last.pth + best.pth each epoch, record.json, model.onnx
 
@@ -46,7 +46,7 @@ class TrainConfig:
     arch: str
     train_scenes: Tuple[str, ...]
     out_dir: str
-    val_scene: Optional[str] = None
+    val_scenes: Tuple[str, ...] = ()         # held-out scenes, pooled: best.pth is chosen on their loss
     task: Optional[str] = None               # default: the architecture's default task
     epochs: int = 10
     batch: int = 8
@@ -265,7 +265,8 @@ def train(cfg: TrainConfig) -> TrainResult:
         raise InputError(f"cannot create the output folder {out}: {exc.strerror}") from None
 
     train_set = load_scenes(cfg.train_scenes, h, w, task.has_depth, task.has_hvo, cfg.progress)
-    val_set = load_scenes([cfg.val_scene], h, w, task.has_depth, task.has_hvo, cfg.progress) if cfg.val_scene else None
+    val_set = (load_scenes(cfg.val_scenes, h, w, task.has_depth, task.has_hvo, cfg.progress)
+               if cfg.val_scenes else None)
     model = spec.build(task, **options).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps = train_set.steps(cfg.batch, drop_last=len(train_set) > cfg.batch)
@@ -284,7 +285,7 @@ def train(cfg: TrainConfig) -> TrainResult:
                              f"architecture and size ({_why_unloadable(exc)})") from None
         log.info("resumed %s at epoch %d", cfg.resume, start_epoch)
     elif cfg.init:
-        spec.load_checkpoint(model, Path(cfg.init))
+        (spec.init_checkpoint or spec.load_checkpoint)(model, Path(cfg.init))
     augmenter = Augmenter(cfg.augment, seed=cfg.seed + start_epoch)
     last, best_path = out / "last.pth", out / "best.pth"
     model.train()
@@ -352,7 +353,7 @@ def _record(cfg, arch, task, hw, train_set, val_set, history, wall_s, device) ->
         "weights": "trained", "arch": arch, "task": task.value, "train_size_hw": list(hw),
         "train_scenes": [s.to_json() for s in train_set.scenes], "train_frames": len(train_set),
         "train_label_pixels": label_counts(train_set.hvo) if train_set.hvo is not None else None,
-        "val_scene": val_set.scenes[0].to_json() if val_set is not None else None,
+        "val_scenes": [s.to_json() for s in val_set.scenes] if val_set is not None else [],
         "epochs": len(history), "batch": cfg.batch, "lr": cfg.lr, "options": dict(cfg.options),
         "augment": asdict(cfg.augment), "init": cfg.init, "resumed_from": cfg.resume,
         "losses": "depth: DenseDepth 0.1*L1 + grad L1 + (1-SSIM)/2 in normalised log depth (metric convention); "

@@ -4,6 +4,7 @@
                --lr 2e-3 --height 120 --width 160 --out runs/edgenet
     edge-train --arch edgenet ... --resume runs/edgenet/last.pth          # continue where it stopped
     edge-train --arch edgenet ... --init runs/edgenet/best.pth --height 240 --width 320   # fine-tune larger
+    edge-train --arch edgenet ... --init runs/edgenet/best.pth --net-width 24   # widen (same outputs at step 0)
 
 Writes OUT/last.pth and OUT/best.pth each epoch, OUT/history.json, OUT/record.json and OUT/<arch>.onnx (the
 best checkpoint, exported at the architecture's input size with the contract and the training record in
@@ -27,7 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--arch", required=True, help=f"architecture: {', '.join(arch_names())}")
     p.add_argument("--task", default=None, help="depth, hvo or depth+hvo (default: the architecture's)")
     p.add_argument("--train", nargs="+", required=True, metavar="SCENE", help="training scene folder(s)")
-    p.add_argument("--val", default=None, metavar="SCENE", help="held-out validation scene (best.pth by its loss)")
+    p.add_argument("--val", nargs="+", default=(), metavar="SCENE",
+                   help="held-out validation scene(s), pooled (best.pth by their loss)")
     p.add_argument("--epochs", type=int, default=10)
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--lr", type=float, default=1e-3)
@@ -64,7 +66,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
             raise InputError(f"--net-width applies to edgenet only, not {args.arch}")
         options = (("channels", int(args.net_width)),)
     return TrainConfig(
-        arch=args.arch, task=args.task, train_scenes=tuple(str(s) for s in args.train), val_scene=args.val,
+        arch=args.arch, task=args.task, train_scenes=tuple(str(s) for s in args.train), val_scenes=tuple(str(s) for s in args.val),
         out_dir=str(args.out), epochs=args.epochs, batch=args.batch, lr=args.lr, weight_decay=args.weight_decay,
         height=args.height, width=args.width, export_height=args.export_height, export_width=args.export_width,
         options=options, resume=args.resume, init=args.init, threads=args.threads, device=args.device,

@@ -115,7 +115,7 @@ def test_loss_decreases_on_one_batch(tiny_scenes):
 def test_train_checkpoint_resume_and_export(tiny_scenes, tmp_path):
     train_dir, val_dir = tiny_scenes
     out = tmp_path / "run"
-    base = dict(arch="edgenet", train_scenes=(str(train_dir),), val_scene=str(val_dir), out_dir=str(out),
+    base = dict(arch="edgenet", train_scenes=(str(train_dir),), val_scenes=(str(val_dir),), out_dir=str(out),
                 batch=2, lr=2e-3, height=H, width=W, export_height=H, export_width=W, options=(("channels", 8),),
                 progress=False)
     first = train(TrainConfig(epochs=1, export=False, **base))
@@ -145,3 +145,38 @@ def test_cli_trains_safeuav_small_hvo_and_reports_bad_input(tiny_scenes, tmp_pat
     rc = train_main(["--arch", "edgenet", "--train", str(tmp_path / "missing"), "--out", str(tmp_path / "x")])
     err = capsys.readouterr().err
     assert rc != 0 and "does not exist" in err and len(err.strip().splitlines()) == 1
+
+
+def test_widening_keeps_what_the_narrow_edgenet_computes():
+    from export.zoo.edgenet import widen_state_dict
+    spec = get_arch("edgenet")
+    torch.manual_seed(0)
+    narrow = spec.build(Task.DEPTH_HVO, channels=8)
+    narrow.train()
+    x = torch.randn(2, 3, H, W)
+    for _ in range(3):      # non-trivial BatchNorm running statistics
+        narrow(x)
+    narrow.eval()
+    wide = spec.build(Task.DEPTH_HVO, channels=12)
+    wide.load_state_dict(widen_state_dict(narrow.state_dict(), wide))
+    wide.eval()
+    with torch.no_grad():
+        (d_n, h_n), (d_w, h_w) = narrow(x), wide(x)
+    assert torch.allclose(d_n, d_w, rtol=1e-4) and torch.allclose(h_n, h_w, atol=1e-4)
+    # New channels are live (random incoming weights), so they can learn; old ones ignore them for now.
+    assert float(wide.stem[0][0].weight[8:].detach().abs().sum()) > 0
+    assert float(wide.enc2[0][0].weight[:12, 8:].detach().abs().sum()) == 0
+
+
+def test_init_widens_a_narrow_checkpoint_and_pools_validation_scenes(tiny_scenes, tmp_path):
+    train_dir, val_dir = tiny_scenes
+    base = dict(arch="edgenet", train_scenes=(str(train_dir),), batch=2, lr=1e-3, height=H, width=W, epochs=1,
+                max_steps_per_epoch=1, export=False, progress=False)
+    narrow = train(TrainConfig(out_dir=str(tmp_path / "n"), options=(("channels", 8),), **base))
+    wide = train(TrainConfig(out_dir=str(tmp_path / "w"), options=(("channels", 12),), init=str(narrow.best_checkpoint),
+                             val_scenes=(str(val_dir), str(train_dir)), **base))
+    record = wide.record
+    assert [s["path"] for s in record["val_scenes"]] == [str(val_dir), str(train_dir)]
+    assert math.isfinite(wide.history[0]["val"]["total"])
+    state = torch.load(wide.best_checkpoint, weights_only=True)["model"]
+    assert tuple(state["stem.0.0.weight"].shape) == (12, 3, 3, 3)

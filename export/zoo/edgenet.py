@@ -31,6 +31,7 @@ that the per-scene calibration removes.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Tuple
@@ -39,10 +40,13 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from edge_runtime.errors import InputError
 from edge_runtime.contract import DepthConvention, DepthSpec, HvoSpec, InputSpec, Layout, ModelContract, Task
 
 from ..checkpoints import load_state_dict_strict, read_checkpoint, source_info, strip_prefix, unwrap_state_dict
 from .registry import ArchSpec
+
+log = logging.getLogger(__name__)
 
 INPUT_NAME = "image"
 OUTPUT_DEPTH = "depth"
@@ -177,6 +181,60 @@ def load_checkpoint(module: nn.Module, path) -> dict:
     return info
 
 
+def _input_channel_map(name: str, old: Tuple[int, ...], new: Tuple[int, ...], old_in: int) -> torch.Tensor:
+    """Where the narrow conv's input channels sit in the wide conv's input (decoder convs read [x, skip])."""
+    splits = {"up3.conv": (3, 2), "up2.conv": (2, 1), "up1.conv": (1, 0)}   # (x, skip) indices into widths
+    for prefix, (ix, isk) in splits.items():
+        if name.startswith(prefix + "."):
+            return torch.cat([torch.arange(old[ix]), new[ix] + torch.arange(old[isk])])
+    return torch.arange(old_in)
+
+
+def widen_state_dict(narrow: dict, model: "EdgeNet") -> dict:
+    """A narrower EdgeNet's weights placed inside ``model`` so that the wide model computes the same outputs.
+
+    Old channels keep their weights; each new channel keeps its random incoming weights (so it is active and
+    learns) while every old channel's weights *from* new channels are zero (so nothing it computes changes).
+    Heads keep their 1 or 3 outputs, so depth and HVO are exactly those of the narrow network.
+    """
+    wide = model.state_dict()
+    old_w = channels_for(int(narrow["stem.0.0.weight"].shape[0]))
+    new_w = channels_for(int(wide["stem.0.0.weight"].shape[0]))
+    if any(o > n for o, n in zip(old_w, new_w)):
+        raise InputError(f"cannot widen EdgeNet base width {old_w[0]} into {new_w[0]}: the checkpoint is wider")
+    out = {}
+    for name, target in wide.items():
+        if name not in narrow:
+            raise InputError(f"checkpoint has no parameter '{name}'; is it an EdgeNet checkpoint?")
+        src = narrow[name]
+        if tuple(src.shape) == tuple(target.shape):
+            out[name] = src.clone()
+            continue
+        t = target.clone()
+        n_out = src.shape[0]
+        if t.dim() == 4:
+            idx = _input_channel_map(name, old_w, new_w, src.shape[1])
+            t[:n_out] = 0.0
+            t[:n_out, idx] = src
+        else:   # BatchNorm weight/bias/running stats, conv bias: old channels first, new ones keep their init
+            t[:n_out] = src
+        out[name] = t
+    return out
+
+
+def init_checkpoint(module: nn.Module, path) -> dict:
+    """``edge-train --init``: our checkpoint, widened first when it was trained at a smaller base width."""
+    where = str(path)
+    state = strip_prefix(unwrap_state_dict(read_checkpoint(path), where), "module.")
+    stem = state.get("stem.0.0.weight")
+    if stem is not None and stem.shape[0] < module.state_dict()["stem.0.0.weight"].shape[0]:
+        load_state_dict_strict(module, widen_state_dict(state, module), where)
+        log.info("widened %s from base width %d to %d", where, stem.shape[0],
+                 module.state_dict()["stem.0.0.weight"].shape[0])
+        return source_info(Path(path))
+    return load_checkpoint(module, path)
+
+
 ARCH_SPEC = ArchSpec(
     name="edgenet",
     paper="this project: joint depth + HVO network for 2 CPU cores (the paper's future work)",
@@ -190,4 +248,5 @@ ARCH_SPEC = ArchSpec(
     load_checkpoint=load_checkpoint,
     options=dict(DEFAULT_OPTIONS),
     min_hw=(32, 32),
+    init_checkpoint=init_checkpoint,
 )

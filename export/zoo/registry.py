@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Tuple
+from typing import Callable, Optional, Tuple
 
 from edge_runtime.contract import Task
 from edge_runtime.errors import InputError
@@ -26,6 +26,8 @@ class ArchSpec:
     load_checkpoint(module, path) -> dict: loads the authors' checkpoint format into ``module`` (strict; a
         mismatch raises InputError naming the parameter and both shapes); returns info for edge.source.
     options: the architecture's build options and their defaults (e.g. {"bins": 256, "max_depth": 10.0}).
+    init_checkpoint(module, path) -> dict, optional: what ``edge-train --init`` uses instead of load_checkpoint
+        (e.g. EdgeNet widens a narrower checkpoint without changing what it computes).
     """
 
     name: str
@@ -40,3 +42,4 @@ class ArchSpec:
     load_checkpoint: Callable
     options: dict = field(default_factory=dict)
     min_hw: Tuple[int, int] = (32, 32)
+    init_checkpoint: Optional[Callable] = None
