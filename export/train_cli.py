@@ -7,7 +7,7 @@
     edge-train --arch edgenet ... --init runs/edgenet/best.pth --net-width 24   # widen (same outputs at step 0)
 
 Writes OUT/last.pth and OUT/best.pth each epoch, OUT/history.json, OUT/record.json and OUT/<arch>.onnx (the
-best checkpoint, exported at the architecture's input size with the contract and the training record in
+best checkpoint, exported at the training size with the contract and the training record in
 edge.source).
 """
 from __future__ import annotations
@@ -39,7 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init", default=None, metavar="CKPT", help="start from these weights with a fresh schedule")
     p.add_argument("--height", type=int, default=None, help="training height (default: the architecture's)")
     p.add_argument("--width", type=int, default=None, help="training width")
-    p.add_argument("--export-height", type=int, default=None, help="ONNX input height (default: the architecture's)")
+    p.add_argument("--export-height", type=int, default=None, help="ONNX input height (default: the training height)")
     p.add_argument("--export-width", type=int, default=None)
     p.add_argument("--net-width", type=int, default=None, help="edgenet only: base channel width (default 16)")
     p.add_argument("--hvo-weight", type=float, default=1.0, help="weight of the HVO cross-entropy")
