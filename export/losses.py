@@ -118,8 +118,12 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (values * m).sum() / m.sum().clamp(min=1.0)
 
 
-def depth_loss(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor) -> Dict[str, torch.Tensor]:
+def depth_loss(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor,
+               l1_weight: float = W_DEPTH) -> Dict[str, torch.Tensor]:
     """DenseDepth's loss on N×1×H×W tensors in loss space; ``valid`` is a bool mask of the same shape.
+
+    ``l1_weight`` is DenseDepth's λ (0.1). In log space the gradient and SSIM terms barely see a wrong global
+    scale, so the L1 term alone teaches absolute depth: a larger λ weighs it more.
 
     Returns the weighted ``total`` and the unweighted ``l1``, ``grad`` and ``ssim`` terms.
     """
@@ -135,7 +139,7 @@ def depth_loss(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor) ->
     # Invalid target pixels take the (detached) prediction so they add no structure to the SSIM windows.
     filled = torch.where(valid, target, pred.detach())
     ssim = _masked_mean(torch.clamp((1.0 - ssim_map(pred, filled)) / 2.0, 0.0, 1.0), valid)
-    total = W_DEPTH * l1 + W_GRAD * grad + W_SSIM * ssim
+    total = l1_weight * l1 + W_GRAD * grad + W_SSIM * ssim
     return {"total": total, "l1": l1, "grad": grad, "ssim": ssim}
 
 

@@ -32,7 +32,7 @@ from edge_runtime.errors import InputError
 
 from .augment import AugmentConfig, Augmenter
 from .datasets import SceneSet, label_counts, load_scenes
-from .losses import DepthLossSpace, depth_loss, hvo_loss
+from .losses import W_DEPTH, DepthLossSpace, depth_loss, hvo_loss
 from .zoo import get_arch
 
 log = logging.getLogger(__name__)
@@ -63,6 +63,7 @@ class TrainConfig:
     device: str = "auto"                     # auto (CUDA when present), cpu, cuda
     seed: int = 0
     hvo_weight: float = 1.0
+    depth_l1_weight: float = W_DEPTH         # DenseDepth's λ on the L1 term
     max_steps_per_epoch: Optional[int] = None
     export: bool = True
     augment: AugmentConfig = AugmentConfig()
@@ -87,6 +88,7 @@ class _Setup:
     names: Tuple[str, ...]
     space: Optional[DepthLossSpace]
     hvo_weight: float
+    depth_l1_weight: float = W_DEPTH
 
 
 # -- tensors in and out ------------------------------------------------------------------------------------
@@ -131,7 +133,8 @@ def losses_from_outputs(depth_out, hvo_out, depth_m, hvo, setup: _Setup) -> Dict
     total = (depth_out if depth_out is not None else hvo_out).new_zeros(())
     if depth_out is not None:
         gt = _at(depth_m, depth_out.shape[-2:])[:, None]
-        d = depth_loss(setup.space.output_to_loss(depth_out), setup.space.target_to_loss(gt), setup.space.valid(gt))
+        d = depth_loss(setup.space.output_to_loss(depth_out), setup.space.target_to_loss(gt), setup.space.valid(gt),
+                       setup.depth_l1_weight)
         terms.update({"depth": d["total"], "l1": d["l1"], "grad": d["grad"], "ssim": d["ssim"]})
         total = total + d["total"]
     if hvo_out is not None:
@@ -253,7 +256,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     options = dict(cfg.options)
     contract = spec.contract(task, h, w, **options)
     setup = _Setup(task, contract, tuple(spec.output_names(task)),
-                   DepthLossSpace.from_spec(contract.depth) if contract.depth else None, cfg.hvo_weight)
+                   DepthLossSpace.from_spec(contract.depth) if contract.depth else None, cfg.hvo_weight,
+                   cfg.depth_l1_weight)
     device = _device(cfg.device)
     out = Path(cfg.out_dir)
     if (out / "last.pth").exists() and not cfg.resume and not cfg.overwrite:
@@ -356,8 +360,9 @@ def _record(cfg, arch, task, hw, train_set, val_set, history, wall_s, device) ->
         "val_scenes": [s.to_json() for s in val_set.scenes] if val_set is not None else [],
         "epochs": len(history), "batch": cfg.batch, "lr": cfg.lr, "options": dict(cfg.options),
         "augment": asdict(cfg.augment), "init": cfg.init, "resumed_from": cfg.resume,
-        "losses": "depth: DenseDepth 0.1*L1 + grad L1 + (1-SSIM)/2 in normalised log depth (metric convention); "
-                  "hvo: cross-entropy, ignore 255",
+        "losses": f"depth: DenseDepth {cfg.depth_l1_weight:g}*L1 + grad L1 + (1-SSIM)/2 in the loss space of the "
+                  f"depth convention (metric: normalised log depth); hvo: {cfg.hvo_weight:g} * cross-entropy, "
+                  "ignore 255",
         "final_train": last.get("train"), "final_val": last.get("val"),
         "best_epoch": best.get("epoch"), "best_val": best.get("val"),
         "git_commit": git_commit(Path(__file__).resolve().parent),

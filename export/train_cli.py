@@ -43,6 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export-width", type=int, default=None)
     p.add_argument("--net-width", type=int, default=None, help="edgenet only: base channel width (default 16)")
     p.add_argument("--hvo-weight", type=float, default=1.0, help="weight of the HVO cross-entropy")
+    p.add_argument("--depth-l1-weight", type=float, default=0.1,
+                   help="DenseDepth's λ on the depth L1 term (0.1; larger teaches absolute scale harder)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1: the cores are shared)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
     p.add_argument("--seed", type=int, default=0)
@@ -70,7 +72,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         out_dir=str(args.out), epochs=args.epochs, batch=args.batch, lr=args.lr, weight_decay=args.weight_decay,
         height=args.height, width=args.width, export_height=args.export_height, export_width=args.export_width,
         options=options, resume=args.resume, init=args.init, threads=args.threads, device=args.device,
-        seed=args.seed, hvo_weight=args.hvo_weight, max_steps_per_epoch=args.max_steps, export=not args.no_export,
+        seed=args.seed, hvo_weight=args.hvo_weight, depth_l1_weight=args.depth_l1_weight,
+        max_steps_per_epoch=args.max_steps, export=not args.no_export,
         augment=AugmentConfig.none() if args.no_augment else AugmentConfig(), progress=not args.no_progress,
         overwrite=args.overwrite)
 
