@@ -1,0 +1,59 @@
+"""The serial MAVLink path (``--mav /dev/ttyX,BAUD``) over a real pseudo-terminal pair: pyserial opens the
+slave end exactly as it would a USB/UART autopilot link; a pymavlink parser reads the master end."""
+from __future__ import annotations
+
+import os
+import select
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("serial")
+if not sys.platform.startswith("linux"):
+    pytest.skip("pseudo-terminals as serial ports: Linux only", allow_module_level=True)
+
+from edge_runtime.mavlink_link import LinkConfig, MavlinkLink, load_mavutil  # noqa: E402
+from edge_runtime.messages import Target  # noqa: E402
+from edge_runtime.telemetry import TelemetryBuffer  # noqa: E402
+
+
+def _read_messages(fd: int, parser, seconds: float) -> list:
+    got, end = [], time.monotonic() + seconds
+    while time.monotonic() < end:
+        ready, _, _ = select.select([fd], [], [], 0.05)
+        if ready:
+            for byte_msg in parser.parse_buffer(os.read(fd, 4096)) or []:
+                got.append(byte_msg)
+        if any(m.get_type() == "LANDING_TARGET" for m in got) and any(m.get_type() == "HEARTBEAT" for m in got):
+            break
+    return got
+
+
+def test_landing_target_and_heartbeat_over_a_serial_port():
+    master, slave = os.openpty()
+    try:
+        import tty
+        tty.setraw(master)
+        link = MavlinkLink(LinkConfig(f"{os.ttyname(slave)},115200"), TelemetryBuffer()).start()
+        mavutil = load_mavutil()
+        parser = mavutil.mavlink.MAVLink(None)
+        target = Target(0, time.monotonic(), True, position_body_frd_m=np.array([6.0, -1.0, 12.0]),
+                        angle_x_rad=-0.07, angle_y_rad=0.44, size_x_rad=0.2, size_y_rad=0.2, clearance_m=3.0)
+        try:
+            for _ in range(5):
+                link.send_target(target, None)
+                time.sleep(0.02)
+            messages = _read_messages(master, parser, 5.0)
+        finally:
+            link.stop()
+    finally:
+        os.close(master)
+        os.close(slave)
+    kinds = {m.get_type() for m in messages}
+    assert {"HEARTBEAT", "LANDING_TARGET"} <= kinds, kinds
+    lt = next(m for m in messages if m.get_type() == "LANDING_TARGET")
+    assert lt.position_valid == 1
+    assert np.allclose([lt.x, lt.y, lt.z], [6.0, -1.0, 12.0], atol=1e-5)
+    assert abs(lt.distance - float(np.linalg.norm([6.0, -1.0, 12.0]))) < 1e-4
