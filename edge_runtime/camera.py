@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
+import cv2
 import numpy as np
 
 from .errors import InputError
@@ -62,7 +63,8 @@ class Intrinsics:
     def pixel_rays(self) -> np.ndarray:
         """H×W×3 float32 array of K⁻¹[u+0.5, v+0.5, 1] (z = 1) for every pixel centre.
 
-        Cached per intrinsics (the per-frame stages ask for the same table every frame); read-only.
+        With distortion coefficients the pixel centres are undistorted first (OpenCV's model), so every ray
+        is the true direction that pixel sees. Cached per intrinsics (the per-frame stages ask for the same table every frame); read-only.
         """
         return _pixel_rays(self)
 
@@ -73,8 +75,13 @@ class Intrinsics:
         return self.pixel_rays() * depth_m[..., None].astype(np.float32)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
-        """Camera-frame points (...×3) -> pixel coordinates (...×2), pixel-edge convention."""
+        """Camera-frame points (...×3, z > 0) -> pixel coordinates (...×2), pixel-edge convention, distorted
+        like the image when the intrinsics carry distortion coefficients."""
         z = points_cam[..., 2]
+        if self.dist:
+            flat = np.ascontiguousarray(points_cam.reshape(-1, 3), dtype=np.float64)
+            uv, _ = cv2.projectPoints(flat, np.zeros(3), np.zeros(3), self.matrix, np.asarray(self.dist, np.float64))
+            return uv.reshape(points_cam.shape[:-1] + (2,))
         u = self.fx * points_cam[..., 0] / z + self.cx
         v = self.fy * points_cam[..., 1] / z + self.cy
         return np.stack([u, v], axis=-1)
@@ -97,8 +104,21 @@ def _pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
     rays[..., 0] = u[None, :]
     rays[..., 1] = v[:, None]
     rays[..., 2] = 1.0
+    if intrinsics.dist:
+        uu, vv = np.meshgrid(np.arange(intrinsics.width) + 0.5, np.arange(intrinsics.height) + 0.5)
+        pixels = np.stack([uu, vv], axis=-1).reshape(-1, 1, 2)
+        xy = _undistort(pixels, intrinsics.matrix, np.asarray(intrinsics.dist, np.float64))
+        rays[..., :2] = xy.reshape(intrinsics.height, intrinsics.width, 2)
     rays.setflags(write=False)
     return rays
+
+
+def _undistort(pixels: np.ndarray, k: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Normalised undistorted coordinates; 40 iterations (OpenCV's default 5 leaves wide lenses' corners off)."""
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
+    if hasattr(cv2, "undistortPointsIter"):        # OpenCV 4.x
+        return cv2.undistortPointsIter(pixels, k, dist, None, None, criteria)
+    return cv2.undistortPoints(pixels, k, dist, criteria=criteria)   # OpenCV 5: the criteria overload
 
 
 def rot_x(a: float) -> np.ndarray:
