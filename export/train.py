@@ -16,10 +16,8 @@ import json
 import logging
 import math
 import pickle
-import subprocess
 import time
 from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -31,7 +29,8 @@ from edge_runtime.contract import HVO_IGNORE, Layout, ModelContract, Task
 from edge_runtime.errors import InputError
 
 from .augment import AugmentConfig, Augmenter
-from .datasets import SceneSet, label_counts, load_scenes
+from .datasets import SceneSet, load_scenes
+from .train_record import epoch_summary, export_trained, run_record
 from .losses import W_DEPTH, DepthLossSpace, depth_loss, hvo_loss
 from .zoo import get_arch
 
@@ -204,14 +203,6 @@ def _config_json(cfg: TrainConfig) -> dict:
     return d
 
 
-def git_commit(cwd: Path) -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
 def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -326,49 +317,16 @@ def train(cfg: TrainConfig) -> TrainResult:
             save_checkpoint(best_path, model, optimizer, scheduler, epoch + 1, best, history, cfg)
         save_checkpoint(last, model, optimizer, scheduler, epoch + 1, best, history, cfg)
         (out / "history.json").write_text(json.dumps(history, indent=1))
-        tqdm.write(_summary(row))
+        tqdm.write(epoch_summary(row))
     if not best_path.exists():   # resumed after the last epoch: nothing new, keep last as best
         save_checkpoint(best_path, model, optimizer, scheduler, cfg.epochs, best, history, cfg)
-    record = _record(cfg, spec.name, task, (h, w), train_set, val_set, history, time.time() - t_start, device)
+    record = run_record(cfg, spec.name, task, (h, w), train_set, val_set, history, time.time() - t_start, device)
     (out / "record.json").write_text(json.dumps(record, indent=1, default=str))
     result = TrainResult(out, best_path, last, history, record=record)
     if cfg.export:
-        result.onnx_path = export_trained(cfg, best_path, out / f"{spec.name}.onnx", record)
+        result.onnx_path = export_trained(cfg.arch, cfg.options, (cfg.export_height, cfg.export_width),
+                                          best_path, out / f"{spec.name}.onnx", record, cfg.progress)
     return result
-
-
-def _summary(row: dict) -> str:
-    parts = [f"epoch {row['epoch']}: train loss {row['train']['total']:.4f}"]
-    v = row.get("val")
-    if v:
-        parts.append(f"val loss {v['total']:.4f}")
-        for key, label in (("delta1_median_scaled", "δ1*"), ("h_precision", "H-prec"), ("hvo_pixel_acc", "HVO acc")):
-            if key in v:
-                parts.append(f"{label} {v[key]:.3f}")
-    parts.append(f"{row['epoch_s']:.0f} s")
-    return ", ".join(parts)
-
-
-def _record(cfg, arch, task, hw, train_set, val_set, history, wall_s, device) -> dict:
-    """What edge.source and the shipped JSON say about the training run."""
-    last = history[-1] if history else {}
-    best = min(history, key=lambda r: r.get("val", r["train"])["total"]) if history else {}
-    return {
-        "weights": "trained", "arch": arch, "task": task.value, "train_size_hw": list(hw),
-        "train_scenes": [s.to_json() for s in train_set.scenes], "train_frames": len(train_set),
-        "train_label_pixels": label_counts(train_set.hvo) if train_set.hvo is not None else None,
-        "val_scenes": [s.to_json() for s in val_set.scenes] if val_set is not None else [],
-        "epochs": len(history), "batch": cfg.batch, "lr": cfg.lr, "options": dict(cfg.options),
-        "augment": asdict(cfg.augment), "init": cfg.init, "resumed_from": cfg.resume,
-        "losses": f"depth: DenseDepth {cfg.depth_l1_weight:g}*L1 + grad L1 + (1-SSIM)/2 in the loss space of the "
-                  f"depth convention (metric: normalised log depth); hvo: {cfg.hvo_weight:g} * cross-entropy, "
-                  "ignore 255",
-        "final_train": last.get("train"), "final_val": last.get("val"),
-        "best_epoch": best.get("epoch"), "best_val": best.get("val"),
-        "git_commit": git_commit(Path(__file__).resolve().parent),
-        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "device": str(device), "threads": cfg.threads, "wall_s": round(wall_s, 1), "torch": torch.__version__,
-    }
 
 
 def _why_unloadable(exc: Exception) -> str:
@@ -378,37 +336,3 @@ def _why_unloadable(exc: Exception) -> str:
     if isinstance(exc, KeyError):
         return f"no '{exc.args[0]}' entry"
     return f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"
-
-
-def export_trained(cfg: TrainConfig, checkpoint: Path, out_path: Path, record: dict) -> Path:
-    """Export ``checkpoint`` with the contract (export.onnx_export) and put the training record in edge.source."""
-    from .onnx_export import ExportSettings, export_onnx
-
-    spec = get_arch(cfg.arch)
-    task = Task.from_string(record["task"])
-    # Default: the size it was trained at. A net trained on 120×160 frames sees objects at half the scale
-    # of 240×320 ones; exported at 240×320 our SafeUAV-Net-Small depth baseline fell from δ1* 0.99 to 0.27.
-    train_h, train_w = record["train_size_hw"]
-    h, w = cfg.export_height or train_h, cfg.export_width or train_w
-    report = export_onnx(spec, task, out_path, h, w, checkpoint=checkpoint, options=dict(cfg.options),
-                         settings=ExportSettings(progress=cfg.progress))
-    set_source(out_path, {**report.source, "training": record})
-    return out_path
-
-
-def set_source(onnx_path: Path, source: dict) -> None:
-    """Replace edge.source of an exported model (the rest of the contract is validated and kept)."""
-    import onnx
-
-    from edge_runtime.contract import KEY_SOURCE
-
-    model = onnx.load(str(onnx_path))
-    props = {p.key: p.value for p in model.metadata_props}
-    ModelContract.from_metadata(props, where=str(onnx_path))
-    props[KEY_SOURCE] = json.dumps(source, sort_keys=True, default=str)
-    del model.metadata_props[:]
-    for k, v in props.items():
-        model.metadata_props.add(key=k, value=v)
-    tmp = onnx_path.with_name(f".{onnx_path.name}.tmp")
-    onnx.save(model, str(tmp))
-    tmp.replace(onnx_path)
