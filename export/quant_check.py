@@ -4,19 +4,26 @@ Depth: δ1 and AbsRel against ground truth (or against FP32 without it) and the 
 of FP32; HVO: mean IoU, precision of 'horizontal' (what landing relies on) and the share of pixels where
 both pick the same class. Example::
 
-    comparison = compare(fp32_model, int8_model, scene, ["000016", "000017"])
+    comparison = compare(fp32_model, int8_model, [(scene, "000016"), (scene, "000017")])
     reasons = check_tolerance(comparison, Tolerance())      # [] when INT8 is good enough
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Sequence
+from typing import List, Sequence, Tuple
 
 import numpy as np
 
 from edge_runtime.inference import OnnxModel
 from edge_runtime.metrics import DepthAccumulator, HvoAccumulator
 from edge_runtime.scene import Scene
+
+
+FrameRef = Tuple[Scene, str]     # one frame: its scene and its id
+
+
+def frame_label(ref: FrameRef) -> str:
+    return f"{ref[0].path.name}/{ref[1]}"
 
 
 @dataclass(frozen=True)
@@ -32,18 +39,18 @@ class Tolerance:
 
 
 
-def _has_ground_truth(scene: Scene, folder: str, suffix: str, frame_ids: Sequence[str]) -> bool:
+def _has_ground_truth(frames: Sequence[FrameRef], folder: str, suffix: str) -> bool:
     """Every held-out frame has this ground truth (a scene writer may leave an empty depth/ or hvo/ folder)."""
-    return all((scene.path / folder / f"{fid}{suffix}").exists() for fid in frame_ids)
+    return all((scene.path / folder / f"{fid}{suffix}").exists() for scene, fid in frames)
 
 
-def compare(fp32: OnnxModel, int8: OnnxModel, scene: Scene, frame_ids: Sequence[str], progress: bool = True) -> dict:
+def compare(fp32: OnnxModel, int8: OnnxModel, frames: Sequence[FrameRef], progress: bool = True) -> dict:
     """INT8 against FP32 on held-out frames: metrics vs ground truth (or vs FP32 without it) and agreement."""
     from tqdm import tqdm
 
     c = fp32.contract
-    use_gt_depth = c.depth is not None and _has_ground_truth(scene, "depth", ".npy", frame_ids)
-    use_gt_hvo = c.hvo is not None and _has_ground_truth(scene, "hvo", ".png", frame_ids)
+    use_gt_depth = c.depth is not None and _has_ground_truth(frames, "depth", ".npy")
+    use_gt_hvo = c.hvo is not None and _has_ground_truth(frames, "hvo", ".png")
     lo, hi = (c.depth.min_depth, c.depth.max_depth) if c.depth is not None else (0.0, 0.0)
     depth_acc = {k: DepthAccumulator(lo, hi) for k in ("fp32", "int8")} if c.depth is not None else None
     # INT8 against FP32 as well: the fall-back when no ground-truth pixel lies inside the model's depth range
@@ -51,7 +58,7 @@ def compare(fp32: OnnxModel, int8: OnnxModel, scene: Scene, frame_ids: Sequence[
     vs_fp32 = DepthAccumulator(lo, hi) if c.depth is not None else None
     hvo_acc = {k: HvoAccumulator() for k in ("fp32", "int8")} if c.hvo is not None else None
     depth_agree, label_agree = [], []
-    for fid in tqdm(frame_ids, desc="comparing INT8 with FP32", unit="frame", disable=not progress, leave=False):
+    for scene, fid in tqdm(frames, desc="comparing INT8 with FP32", unit="frame", disable=not progress, leave=False):
         rgb = scene.read_rgb(fid)
         gt_d = scene.read_depth(fid) if use_gt_depth else None
         gt_h = scene.read_hvo(fid) if use_gt_hvo else None
@@ -71,7 +78,7 @@ def compare(fp32: OnnxModel, int8: OnnxModel, scene: Scene, frame_ids: Sequence[
             hvo_acc["fp32"].add(ref, l32)
             hvo_acc["int8"].add(ref, l8)
             label_agree.append(float(np.mean(l32 == l8)))
-    result: dict = {"frames": len(frame_ids), "first": frame_ids[0], "last": frame_ids[-1]}
+    result: dict = {"frames": len(frames), "first": frame_label(frames[0]), "last": frame_label(frames[-1])}
     if depth_acc is not None:
         m = {k: acc.result() for k, acc in depth_acc.items()}
         reference = "ground truth" if use_gt_depth else "fp32"

@@ -18,7 +18,7 @@ import os
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -27,7 +27,7 @@ from edge_runtime.errors import InputError, SceneError
 from edge_runtime.inference import OnnxModel
 from edge_runtime.scene import Scene
 
-from .quant_check import Tolerance, check_tolerance, compare
+from .quant_check import FrameRef, Tolerance, check_tolerance, compare, frame_label
 
 log = logging.getLogger(__name__)
 
@@ -64,9 +64,9 @@ def float_op_types_for(arch: str) -> Tuple[str, ...]:
 
 @dataclass(frozen=True)
 class QuantizeConfig:
-    calib_scene: Path
-    calib_frames: int = 16
-    eval_frames: int = 16                # held-out frames compared (the rest after calib_frames, capped)
+    calib_scene: Union[Path, Tuple[Path, ...]]   # one scene folder or several (frames shared out evenly)
+    calib_frames: int = 16               # in all (over all scenes)
+    eval_frames: int = 16                # held-out frames compared (after each scene's calibration frames)
     per_channel: bool = True
     reduce_range: bool = True
     method: CalibrationMethod = CalibrationMethod.MINMAX
@@ -78,6 +78,12 @@ class QuantizeConfig:
     force: bool = False                  # write the INT8 file even when it fails the tolerance
     threads: int = 2
     progress: bool = True
+
+    @property
+    def calib_scenes(self) -> Tuple[Path, ...]:
+        if isinstance(self.calib_scene, (str, Path)):
+            return (Path(self.calib_scene),)
+        return tuple(Path(p) for p in self.calib_scene)
 
 
 @dataclass
@@ -96,34 +102,55 @@ class QuantReport:
 class SceneCalibrationReader:
     """ONNX Runtime's one-method reader over scene frames, preprocessed exactly as the runtime does."""
 
-    def __init__(self, scene: Scene, frame_ids: Sequence[str], prepare: Callable[[np.ndarray], np.ndarray],
+    def __init__(self, frames: Sequence[FrameRef], prepare: Callable[[np.ndarray], np.ndarray],
                  input_name: str, progress: bool = True):
-        self.scene, self.frame_ids, self.prepare, self.input_name = scene, list(frame_ids), prepare, input_name
+        self.frames, self.prepare, self.input_name = list(frames), prepare, input_name
         self.progress = progress
         self.rewind()
 
     def rewind(self) -> None:
         from tqdm import tqdm
 
-        self._iter = iter(tqdm(self.frame_ids, desc="calibrating", unit="frame", disable=not self.progress,
+        self._iter = iter(tqdm(self.frames, desc="calibrating", unit="frame", disable=not self.progress,
                                leave=False))
 
     def get_next(self) -> Optional[Dict[str, np.ndarray]]:
-        fid = next(self._iter, None)
-        if fid is None:
+        ref = next(self._iter, None)
+        if ref is None:
             return None
-        return {self.input_name: self.prepare(self.scene.read_rgb(fid))}
+        scene, fid = ref
+        return {self.input_name: self.prepare(scene.read_rgb(fid))}
 
 
-def split_frames(scene: Scene, calib_frames: int, eval_frames: int) -> Tuple[List[str], List[str]]:
-    """First ``calib_frames`` for calibration, the next ``eval_frames`` held out for the comparison."""
+def _shares(total: int, parts: int) -> List[int]:
+    return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
+
+
+def split_frames(scenes: Sequence[Scene], calib_frames: int, eval_frames: int) -> Tuple[List[FrameRef], List[FrameRef]]:
+    """Each scene's first frames calibrate and its next ones are held out; ``calib_frames`` and ``eval_frames``
+    are totals shared evenly between the scenes, and the frames are interleaved (scene 1, scene 2, ...)."""
     if calib_frames < 1 or eval_frames < 1:
         raise InputError(f"--frames and --eval-frames must be at least 1, got {calib_frames} and {eval_frames}")
-    if len(scene) <= calib_frames:
-        raise SceneError(f"scene {scene.path} has {len(scene)} frame(s); calibrating on {calib_frames} needs at "
-                         f"least {calib_frames + 1} so that some are held out for the accuracy check (lower --frames, e.g. "
-                         f"--frames {max(1, len(scene) * 2 // 3)}, or make a longer scene with edge-sim --frames)")
-    return scene.frame_ids[:calib_frames], scene.frame_ids[calib_frames:calib_frames + eval_frames]
+    if calib_frames < len(scenes) or eval_frames < len(scenes):
+        raise InputError(f"--frames {calib_frames} / --eval-frames {eval_frames} cannot cover {len(scenes)} scenes; "
+                         f"expected at least one of each per scene")
+    calib, held = [], []
+    for scene, n_cal, n_eval in zip(scenes, _shares(calib_frames, len(scenes)), _shares(eval_frames, len(scenes))):
+        if len(scene) <= n_cal:
+            raise SceneError(f"scene {scene.path} has {len(scene)} frame(s); calibrating on {n_cal} of them needs "
+                             f"at least {n_cal + 1} so that some are held out for the accuracy check (lower --frames, "
+                             f"e.g. --frames {max(1, len(scene) * 2 // 3 * len(scenes))}, or make a longer scene with "
+                             f"edge-sim --frames)")
+        calib.append([(scene, f) for f in scene.frame_ids[:n_cal]])
+        held.append([(scene, f) for f in scene.frame_ids[n_cal:n_cal + n_eval]])
+    return _interleave(calib), _interleave(held)
+
+
+def _interleave(groups: List[List[FrameRef]]) -> List[FrameRef]:
+    out: List[FrameRef] = []
+    for i in range(max(len(g) for g in groups)):
+        out.extend(g[i] for g in groups if i < len(g))
+    return out
 
 
 def depth_head_nodes(model, depth_output: str) -> List[str]:
@@ -196,15 +223,15 @@ def _subpixel(model, fp32: OnnxModel, rgb: np.ndarray) -> int:
     return count
 
 
-def _settings(config: QuantizeConfig, calib: List[str], excluded: List[str], float_head: bool, fp32: OnnxModel,
+def _settings(config: QuantizeConfig, calib: List[FrameRef], excluded: List[str], float_head: bool, fp32: OnnxModel,
               float_ops: Tuple[str, ...]) -> dict:
     import onnxruntime
 
     return {"format": "QDQ", "activations": "QUInt8", "weights": "QInt8", "per_channel": config.per_channel,
             "reduce_range": config.reduce_range, "method": config.method.value, "float_depth_head": float_head,
             "excluded_nodes": excluded, "float_op_types": list(float_ops),
-            "calibration": {"scene": str(config.calib_scene), "frames": len(calib), "first": calib[0],
-                            "last": calib[-1]},
+            "calibration": {"scenes": [str(p) for p in config.calib_scenes], "frames": len(calib),
+                            "first": frame_label(calib[0]), "last": frame_label(calib[-1])},
             "fp32_sha256": fp32.sha256, "onnxruntime": onnxruntime.__version__, "tolerance": asdict(config.tolerance)}
 
 
@@ -281,8 +308,7 @@ def quantize(input: os.PathLike | str, output: os.PathLike | str, config: Quanti
     fp32 = OnnxModel.load(src, threads=config.threads)
     if fp32.contract.quantization is not None:
         raise InputError(f"{src} is already quantized (edge.quantization is set); quantize the FP32 model")
-    scene = Scene(config.calib_scene)
-    calib, held_out = split_frames(scene, config.calib_frames, config.eval_frames)
+    calib, held_out = split_frames([Scene(p) for p in config.calib_scenes], config.calib_frames, config.eval_frames)
     float_head = (config.depth_head is DepthHead.FLOAT
                   or (config.depth_head is DepthHead.AUTO and fp32.contract.depth is not None))
     if float_head and fp32.contract.depth is None:
@@ -292,7 +318,7 @@ def quantize(input: os.PathLike | str, output: os.PathLike | str, config: Quanti
         pre, out_tmp = Path(tmp) / "pre.onnx", Path(tmp) / "int8.onnx"
         _pre_process(src, pre)
         model = onnx.load(str(pre))
-        rewritten = _subpixel(model, fp32, scene.read_rgb(calib[0])) if config.subpixel else 0
+        rewritten = _subpixel(model, fp32, calib[0][0].read_rgb(calib[0][1])) if config.subpixel else 0
         _name_nodes(model)
         onnx.save(model, str(pre))
         names = {n.name for n in model.graph.node}
@@ -303,14 +329,15 @@ def quantize(input: os.PathLike | str, output: os.PathLike | str, config: Quanti
         if float_head:
             excluded += [n for n in depth_head_nodes(model, fp32.contract.depth.output) if n not in excluded]
         del model
-        reader = SceneCalibrationReader(scene, calib, fp32.prepare, fp32.contract.input.name, config.progress)
+        reader = SceneCalibrationReader(calib, fp32.prepare, fp32.contract.input.name, config.progress)
         float_ops = (config.float_op_types if config.float_op_types is not None
                      else float_op_types_for(fp32.contract.arch))
         raised = _run_quantizer(pre, out_tmp, reader, config, excluded, float_ops)
         settings = {**_settings(config, calib, excluded, float_head, fp32, float_ops),
                     "subpixel_conv_transposes": rewritten, "weight_channels_scaled_for_bias": raised}
         _write_metadata(out_tmp, fp32, settings)
-        comparison = compare(fp32, OnnxModel.load(out_tmp, threads=config.threads), scene, held_out, config.progress)
+        comparison = compare(fp32, OnnxModel.load(out_tmp, threads=config.threads), held_out,
+                             config.progress)
         reasons = check_tolerance(comparison, config.tolerance)
         passed = not reasons
         settings = {**settings, "comparison": comparison, "passed": passed, "forced": bool(reasons) and config.force}

@@ -2,6 +2,7 @@
 
     edge-quantize model.onnx --calib scene/ --frames 16 --out model.int8.onnx
     edge-quantize model.onnx --calib scene/ --out model.int8.onnx --force        # keep it even if it fails
+    edge-quantize model.onnx --calib suburban/ urban/ --frames 16 --out model.int8.onnx   # 8 + 8 frames
 
 Exits non-zero with one line when INT8 loses more than the tolerance (the INT8 file is then not written).
 Memory: ONNX Runtime's calibrator keeps every activation of every calibration frame (DenseDepth at 480x640:
@@ -26,9 +27,10 @@ def build_parser() -> argparse.ArgumentParser:
     t = Tolerance()
     p = CliParser(prog="edge-quantize", description=__doc__.split("\n\n")[0])
     p.add_argument("model", type=Path, help="FP32 .onnx with the model contract (from edge-export)")
-    p.add_argument("--calib", type=Path, required=True, help="scene folder: first --frames frames calibrate, "
-                                                             "the following ones are held out for the check")
-    p.add_argument("--frames", type=int, default=16, help="calibration frames (default 16)")
+    p.add_argument("--calib", type=Path, nargs="+", required=True,
+                   help="scene folder(s): each one's first frames calibrate, the following ones are held out for the "
+                        "check (a model for several kinds of scene: give one of each)")
+    p.add_argument("--frames", type=int, default=16, help="calibration frames in all, shared by the scenes (default 16)")
     p.add_argument("--eval-frames", type=int, default=16, help="held-out frames compared (default 16)")
     p.add_argument("--out", type=Path, required=True, help="INT8 .onnx to write")
     p.add_argument("--force", action="store_true", help="write the INT8 model even if it fails the tolerance")
@@ -95,7 +97,7 @@ def main_body(argv: Sequence[str] | None = None) -> int:
         raise InputError(f"--threads must be at least 1, got {args.threads}")
     tol = Tolerance(args.max_delta1_drop, args.max_absrel_increase, args.min_depth_agreement,
                     args.max_miou_drop, args.max_hprec_drop, args.min_label_agreement)
-    config = QuantizeConfig(calib_scene=args.calib, calib_frames=args.frames, eval_frames=args.eval_frames,
+    config = QuantizeConfig(calib_scene=tuple(args.calib), calib_frames=args.frames, eval_frames=args.eval_frames,
                             per_channel=not args.no_per_channel, reduce_range=not args.no_reduce_range,
                             method=CalibrationMethod.from_string(args.method), depth_head=args.depth_head,
                             exclude_nodes=tuple(args.exclude_node),

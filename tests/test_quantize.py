@@ -123,8 +123,25 @@ def test_conv_transpose_is_rewritten_so_it_quantizes(models, tmp_path):
 def test_depth_is_compared_with_fp32_when_ground_truth_is_out_of_the_models_range(models, tmp_path):
     far = textured_scene(tmp_path / "far", 3, depth_offset_m=500.0)   # the tiny model's range ends at 100 m
     fp32 = OnnxModel.load(models["both"])
-    result = compare(fp32, fp32, Scene(far), ["000000", "000001"], progress=False)["depth"]
+    result = compare(fp32, fp32, [(Scene(far), "000000"), (Scene(far), "000001")], progress=False)["depth"]
     assert result["reference"].startswith("fp32 (no ground-truth pixel")
     assert result["delta1_drop"] == 0.0 and result["abs_rel_increase"] == 0.0 and result["agreement"] == 1.0
-    near = compare(fp32, fp32, Scene(models["good"]), ["000006"], progress=False)["depth"]
+    near = compare(fp32, fp32, [(Scene(models["good"]), "000006")], progress=False)["depth"]
     assert near["reference"] == "ground truth" and np.isfinite(near["fp32"]["abs_rel"])
+
+
+def test_calibration_from_two_scenes_shares_and_interleaves_frames(models, tmp_path):
+    from export.quantize import split_frames
+
+    a, b = Scene(models["good"]), Scene(textured_scene(tmp_path / "other", 8, seed=9))
+    calib, held = split_frames([a, b], 5, 4)
+    assert [s.path for s, _ in calib] == [a.path, b.path, a.path, b.path, a.path]     # 3 + 2, interleaved
+    assert [f for s, f in calib if s is a] == ["000000", "000001", "000002"]
+    assert [(s.path, f) for s, f in held] == [(a.path, "000003"), (b.path, "000002"), (a.path, "000004"),
+                                               (b.path, "000003")]
+    out = tmp_path / "two.int8.onnx"
+    assert main([str(models["both"]), "--calib", str(a.path), str(b.path), "--frames", "6", "--eval-frames", "4",
+                 "--out", str(out), "--no-progress"]) == 0
+    q = OnnxModel.load(out).contract.quantization
+    assert q["calibration"]["scenes"] == [str(a.path), str(b.path)] and q["calibration"]["frames"] == 6
+    assert q["comparison"]["frames"] == 4 and q["comparison"]["last"] == "other/000004"   # 3 + 3 calibrate, 2 + 2 held out
