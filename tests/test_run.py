@@ -95,18 +95,6 @@ def test_bad_input_is_one_line_and_exit_2(assets, args, message, capsys):
     assert len(err) == 1 and message in err[0], err
 
 
-def test_serial_link_without_pyserial_is_one_line(assets, capsys):
-    pytest.importorskip("pymavlink")
-    try:
-        import serial  # noqa: F401
-        pytest.skip("pyserial is installed here")
-    except ImportError:
-        pass
-    assert main(["--camera", assets["video"], "--model", assets["model"], "--mav", "/dev/ttyUSB9,57600"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "pip install pyserial" in err[0]
-
-
 def test_model_without_contract_is_one_line(assets, tmp_path, capsys):
     bare = tiny_onnx_model(tmp_path / "bare.onnx", contract=False)
     assert main(["--camera", assets["video"], "--model", str(bare)]) == 2
