@@ -145,3 +145,20 @@ def test_calibration_from_two_scenes_shares_and_interleaves_frames(models, tmp_p
     q = OnnxModel.load(out).contract.quantization
     assert q["calibration"]["scenes"] == [str(a.path), str(b.path)] and q["calibration"]["frames"] == 6
     assert q["comparison"]["frames"] == 4 and q["comparison"]["last"] == "other/000004"   # 3 + 3 calibrate, 2 + 2 held out
+
+
+def test_joint_net_keeps_its_whole_depth_branch_float_and_nothing_shared():
+    from onnx import TensorProto, helper
+
+    def conv(i, o, name):
+        return helper.make_node("Conv", [i, "w"], [o], name=name)
+    nodes = [conv("image", "t1", "trunk"), helper.make_node("Relu", ["t1"], ["t"], name="trunk_relu"),
+             conv("t", "d1", "depth_conv3x3"), helper.make_node("Relu", ["d1"], ["d2"], name="depth_relu"),
+             conv("d2", "d3", "depth_out_conv"), helper.make_node("Exp", ["d3"], ["depth"], name="exp"),
+             conv("t", "hvo_logits", "hvo_conv")]
+    vi = helper.make_tensor_value_info
+    graph = helper.make_graph(nodes, "g", [vi("image", TensorProto.FLOAT, [1, 1, 4, 4])],
+                              [vi("depth", TensorProto.FLOAT, None), vi("hvo_logits", TensorProto.FLOAT, None)],
+                              [helper.make_tensor("w", TensorProto.FLOAT, [1, 1, 1, 1], [1.0])])
+    model = helper.make_model(graph)
+    assert sorted(depth_head_nodes(model, "depth")) == ["depth_conv3x3", "depth_out_conv", "depth_relu", "exp"]
