@@ -112,6 +112,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("out/check_shipped"))
     args = p.parse_args(argv)
     specs = [SceneSpec.parse(s) for s in args.seeds]
+    missing = [str(m) for m in args.models if not m.is_file()]
+    if missing:
+        raise SystemExit(f"check_shipped: model file {missing[0]} does not exist; expected an ONNX file from "
+                         f"edge-export/edge-train (default: the shipped edgenet.onnx and edgenet.int8.onnx)")
     args.out.mkdir(parents=True, exist_ok=True)
     rows: List[dict] = []
     for spec in specs:

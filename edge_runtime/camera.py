@@ -77,11 +77,11 @@ class Intrinsics:
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Camera-frame points (...×3, z > 0) -> pixel coordinates (...×2), pixel-edge convention, distorted
         like the image when the intrinsics carry distortion coefficients."""
-        z = points_cam[..., 2]
         if self.dist:
             flat = np.ascontiguousarray(points_cam.reshape(-1, 3), dtype=np.float64)
             uv, _ = cv2.projectPoints(flat, np.zeros(3), np.zeros(3), self.matrix, np.asarray(self.dist, np.float64))
             return uv.reshape(points_cam.shape[:-1] + (2,))
+        z = points_cam[..., 2]
         u = self.fx * points_cam[..., 0] / z + self.cx
         v = self.fy * points_cam[..., 1] / z + self.cy
         return np.stack([u, v], axis=-1)

@@ -164,30 +164,24 @@ def depth_head_nodes(model, depth_output: str) -> List[str]:
     producers = {out: node for node in model.graph.node for out in node.output}
     others = [o.name for o in model.graph.output if o.name != depth_output]
     if others:
-        shared = _ancestors(producers, others)
+        shared = set(_ancestors(producers, others))
         return [n for n in _ancestors(producers, [depth_output]) if n not in shared]
-    found, stack, seen = [], [depth_output], set()
-    while stack and len(found) < _HEAD_WALK_LIMIT:
-        node = producers.get(stack.pop())
-        if node is None or node.name in seen:
-            continue
-        seen.add(node.name)
-        found.append(node.name)
-        if node.op_type not in _COMPUTE_OPS:
-            stack.extend(node.input)
-    return found
+    return _ancestors(producers, [depth_output], stop_at_compute=True, limit=_HEAD_WALK_LIMIT)
 
 
-def _ancestors(producers: dict, outputs: List[str]) -> List[str]:
-    """Names of every node that the given graph outputs depend on (nearest first)."""
+def _ancestors(producers: dict, outputs: List[str], stop_at_compute: bool = False,
+               limit: Optional[int] = None) -> List[str]:
+    """Names of the nodes the given graph outputs depend on (nearest first); with ``stop_at_compute`` a path
+    ends at its first compute op (Conv, Gemm, ...), which is still included."""
     found, stack, seen = [], list(outputs), set()
-    while stack:
+    while stack and (limit is None or len(found) < limit):
         node = producers.get(stack.pop())
         if node is None or node.name in seen:
             continue
         seen.add(node.name)
         found.append(node.name)
-        stack.extend(node.input)
+        if not (stop_at_compute and node.op_type in _COMPUTE_OPS):
+            stack.extend(node.input)
     return found
 
 

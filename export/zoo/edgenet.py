@@ -226,13 +226,13 @@ def init_checkpoint(module: nn.Module, path) -> dict:
     """``edge-train --init``: our checkpoint, widened first when it was trained at a smaller base width."""
     where = str(path)
     state = strip_prefix(unwrap_state_dict(read_checkpoint(path), where), "module.")
-    stem = state.get("stem.0.0.weight")
-    if stem is not None and stem.shape[0] < module.state_dict()["stem.0.0.weight"].shape[0]:
-        load_state_dict_strict(module, widen_state_dict(state, module), where)
-        log.info("widened %s from base width %d to %d", where, stem.shape[0],
-                 module.state_dict()["stem.0.0.weight"].shape[0])
-        return source_info(Path(path))
-    return load_checkpoint(module, path)
+    narrow_width = state["stem.0.0.weight"].shape[0] if "stem.0.0.weight" in state else None
+    wide_width = module.state_dict()["stem.0.0.weight"].shape[0]
+    if narrow_width is None or narrow_width >= wide_width:
+        return load_checkpoint(module, path)      # same width (or not ours): the strict loader names any mismatch
+    load_state_dict_strict(module, widen_state_dict(state, module), where)
+    log.info("widened %s from base width %d to %d", where, narrow_width, wide_width)
+    return source_info(Path(path))
 
 
 ARCH_SPEC = ArchSpec(
