@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from edge_runtime.contract import Task
-from edge_runtime.errors import CliParser, InputError, run_cli
+from edge_runtime.errors import CliParser, InputError, require_extra, run_cli
 
 # (flag attribute, ArchSpec option name)
 _OPTION_FLAGS = (("bins", "bins"), ("min_depth", "min_depth"), ("max_depth", "max_depth"))
@@ -84,7 +84,9 @@ def _parse_option(text: str) -> tuple:
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
     config = parse_config(argv)
-    # torch is imported only here so that --help stays fast.
+    # torch is imported only here so that --help stays fast, and without the [export] extra the user gets one line.
+    require_extra("torch", "export")
+    require_extra("onnx", "export")
     from export.onnx_export import ExportSettings, export_onnx
     from export.zoo import get_arch
 

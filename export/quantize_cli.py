@@ -15,7 +15,7 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from edge_runtime.errors import CliParser, EdgeError, InputError, run_cli
+from edge_runtime.errors import CliParser, EdgeError, InputError, require_extra, run_cli
 
 from .quantize import CalibrationMethod, DepthHead, QuantizeConfig, QuantReport, Tolerance, quantize
 
@@ -93,6 +93,7 @@ def format_report(report: QuantReport) -> str:
 
 def main_body(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    require_extra("onnx", "export")     # ONNX Runtime's quantizer edits the graph with the onnx package
     if args.threads is not None and args.threads < 1:
         raise InputError(f"--threads must be at least 1, got {args.threads}")
     tol = Tolerance(args.max_delta1_drop, args.max_absrel_increase, args.min_depth_agreement,

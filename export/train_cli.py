@@ -16,10 +16,8 @@ import argparse
 from pathlib import Path
 from typing import Sequence
 
-from edge_runtime.errors import CliParser, InputError, run_cli
+from edge_runtime.errors import CliParser, InputError, require_extra, run_cli
 
-from .augment import AugmentConfig
-from .train import TrainConfig, train
 from .zoo import arch_names
 
 
@@ -56,7 +54,12 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def config_from_args(args: argparse.Namespace) -> TrainConfig:
+def config_from_args(args: argparse.Namespace):
+    """The TrainConfig of the parsed arguments (torch is imported here: without the [export] extra, one line)."""
+    require_extra("torch", "export")
+    from .augment import AugmentConfig
+    from .train import TrainConfig
+
     if args.resume and args.init:
         raise InputError("--resume and --init exclude each other (resume continues a run, init starts a new one)")
     for flag, value in (("--resume", args.resume), ("--init", args.init)):
@@ -80,7 +83,10 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def _main(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)
-    result = train(config_from_args(args))
+    config = config_from_args(args)
+    from .train import train
+
+    result = train(config)
     last = result.history[-1] if result.history else {}
     print(f"trained {args.arch}: {len(result.history)} epochs, final train loss "
           f"{last.get('train', {}).get('total', float('nan')):.4f}; best checkpoint {result.best_checkpoint}"

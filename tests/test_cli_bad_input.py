@@ -93,3 +93,20 @@ def test_train_does_not_overwrite_an_earlier_run_unless_asked(tmp_path, capsys):
     one_line_error(capsys, train_main, ["--arch", "edgenet", "--train", str(scene), "--out", str(out),
                                         "--height", "32", "--width", "32", "--no-progress"], "already holds a training run")
     assert (out / "last.pth").read_bytes() == b"an earlier run"
+
+
+@pytest.mark.parametrize("module,argv", [
+    ("export.train_cli", ["--arch", "edgenet", "--train", "scenes/a", "--out", "runs/a"]),
+    ("export.cli", ["--arch", "edgenet", "--out", "m.onnx"]),
+])
+def test_missing_export_extra_is_one_line(module, argv):
+    """Without torch (the [export] extra) the command names the extra to install instead of a traceback."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['torch'] = None; import importlib; "
+            f"sys.exit(importlib.import_module('{module}').main({argv!r}))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    err = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(err) == 1, done.stderr
+    assert "pip install 'edge-landing[export]'" in err[0]
