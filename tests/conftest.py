@@ -16,8 +16,8 @@ def one_torch_thread():
 def densedepth(one_torch_thread):
     """DenseNet-169 is big: build DenseDepth once per module (seeded, eval mode)."""
     torch = pytest.importorskip("torch")
-    from edge_runtime.contract import Task
-    from export.zoo import get_arch
+    from edge_landing.export.zoo import get_arch
+    from edge_landing.runtime.perception.contract import Task
 
     torch.manual_seed(0)
     return get_arch("densedepth").build(Task.DEPTH).eval()

@@ -10,9 +10,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from edge_runtime.camera import Attitude, Intrinsics, Mount, ned_from_camera
-from edge_runtime.geometry import HvoThresholds
-from edge_runtime.messages import Prediction, VehicleState
+from edge_landing.runtime.core.camera import (
+    Attitude,
+    Intrinsics,
+    Mount,
+    ned_from_camera,
+)
+from edge_landing.runtime.core.geometry import HvoThresholds
+from edge_landing.runtime.core.messages import Prediction, VehicleState
 
 
 @dataclass(frozen=True)
@@ -115,7 +120,7 @@ def check_target_on_gt(target, render: "Render", where: str, config=None) -> Non
     at 80 m) can be missed, so beyond the requested disc only what a working pixel resolves is promised.
     'Same height' allows the rise of ground that still counts as horizontal (slope <= max_slope_rad).
     """
-    from edge_runtime.fusion import FusionConfig
+    from edge_landing.runtime.fusion.fuser import FusionConfig
 
     cfg = config or FusionConfig()
     need = cfg.required_clearance_m

@@ -3,9 +3,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
-from edge_runtime.contract import DepthConvention, DepthSpec, HvoSpec, InputSpec, Layout, ModelContract, Task
+from edge_landing.runtime.perception.contract import (
+    DepthConvention,
+    DepthSpec,
+    HvoSpec,
+    InputSpec,
+    Layout,
+    ModelContract,
+    Task,
+)
 
 
 def tiny_onnx_model(path: Path, height: int = 16, width: int = 24, task: Task = Task.DEPTH_HVO,

@@ -6,9 +6,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from edge_runtime.camera import Intrinsics
-from edge_runtime.contract import DepthConvention, DepthSpec, HvoSpec, InputSpec, Layout, ModelContract, Task
-from edge_runtime.scene import SceneMeta, SceneWriter
+from edge_landing.evaluation.scene import SceneMeta, SceneWriter
+from edge_landing.runtime.core.camera import Intrinsics
+from edge_landing.runtime.perception.contract import (
+    DepthConvention,
+    DepthSpec,
+    HvoSpec,
+    InputSpec,
+    Layout,
+    ModelContract,
+    Task,
+)
 
 
 def tiny_conv_net(path: Path, task: Task = Task.DEPTH_HVO, height: int = 32, width: int = 48, seed: int = 0,

@@ -11,8 +11,16 @@ from typing import List, Optional
 import cv2
 import numpy as np
 
-from edge_runtime.camera import Intrinsics, Mount
-from edge_runtime.contract import DepthConvention, DepthSpec, HvoSpec, InputSpec, Layout, ModelContract, Task
+from edge_landing.runtime.core.camera import Intrinsics, Mount
+from edge_landing.runtime.perception.contract import (
+    DepthConvention,
+    DepthSpec,
+    HvoSpec,
+    InputSpec,
+    Layout,
+    ModelContract,
+    Task,
+)
 
 
 def ground_plane_depth(height: int, width: int, agl_m: float, mount: Mount = Mount(),
@@ -91,7 +99,7 @@ class LoopbackAutopilot:
 
     def __init__(self, port: int, telemetry: bool = False, position_ned=(5.0, -3.0, -10.0), yaw_rad: float = 0.0,
                  rate_hz: float = 50.0):
-        from edge_runtime.mavlink_link import load_mavutil
+        from edge_landing.runtime.io.mavlink_link import load_mavutil
 
         self.mavutil = load_mavutil()
         self.conn = self.mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1, source_component=1)

@@ -10,13 +10,29 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from edge_runtime.contract import DepthConvention, Layout, ModelContract, Task  # noqa: E402
-from edge_runtime.errors import InputError  # noqa: E402
-from export.checkpoints import count_parameters  # noqa: E402
-from export.zoo import get_arch  # noqa: E402
-from export.zoo.adabins import OLD_KEY_PREFIXES, AdaBins, check_input_size, patch_count  # noqa: E402
-from export.zoo.efficientnet import (EFFICIENTNET_B5_TF, Conv2dSame, EfficientNet, _same_pad,  # noqa: E402
-                                     round_filters, round_repeats)
+from edge_landing.export.checkpoints import count_parameters  # noqa: E402
+from edge_landing.export.zoo import get_arch  # noqa: E402
+from edge_landing.export.zoo.adabins import (  # noqa: E402
+    OLD_KEY_PREFIXES,
+    AdaBins,
+    check_input_size,
+    patch_count,
+)
+from edge_landing.export.zoo.efficientnet import (  # noqa: E402
+    EFFICIENTNET_B5_TF,
+    Conv2dSame,
+    EfficientNet,
+    _same_pad,
+    round_filters,
+    round_repeats,
+)
+from edge_landing.runtime.core.errors import InputError  # noqa: E402
+from edge_landing.runtime.perception.contract import (  # noqa: E402
+    DepthConvention,
+    Layout,
+    ModelContract,
+    Task,
+)
 
 SMALLEST_HW = (320, 448)
 
@@ -210,8 +226,8 @@ def test_legacy_onnx_export_matches_pytorch_at_the_smallest_size(tmp_path, model
 @pytest.mark.slow
 @pytest.mark.parametrize("bins,hw", [(80, SMALLEST_HW), (256, (480, 640))])
 def test_edge_export_writes_a_verified_contract_model(tmp_path, bins, hw):
-    from edge_runtime.inference import OnnxModel
-    from export.onnx_export import ExportSettings, export_onnx
+    from edge_landing.export.onnx_export import ExportSettings, export_onnx
+    from edge_landing.runtime.perception.inference import OnnxModel
 
     out = tmp_path / f"adabins{bins}.onnx"
     report = export_onnx(get_arch("adabins"), Task.DEPTH, out, *hw, options={"bins": bins},

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from benchmarks import report as rep
-from benchmarks.cli import main
-from benchmarks.flops import count_macs
-from benchmarks.speed import Backend, interleaved, SpeedConfig
+from edge_landing.benchmarks import report as rep
+from edge_landing.benchmarks.cli import main
+from edge_landing.benchmarks.flops import count_macs
+from edge_landing.benchmarks.speed import Backend, SpeedConfig, interleaved
 from tests.quant_models import tiny_conv_net
 
 
@@ -102,8 +102,8 @@ def test_markdown_includes_scaling_table():
 
 
 def test_profile_sums_kernel_time_per_op_type(tmp_path):
-    from benchmarks.profile import profile_ops, summarise
-    from edge_runtime.inference import read_contract
+    from edge_landing.benchmarks.profile import profile_ops, summarise
+    from edge_landing.runtime.perception.inference import read_contract
 
     path = tiny_conv_net(tmp_path / "m.onnx")
     ops = profile_ops(path, read_contract(path), threads=1, runs=3, warmup=1)
@@ -118,7 +118,7 @@ def test_profile_sums_kernel_time_per_op_type(tmp_path):
 
 
 def test_goal_checks_say_met_or_missed_by_how_much():
-    from benchmarks.goals import check_goals
+    from edge_landing.benchmarks.goals import check_goals
 
     def row(model, fp32, int8, torch, share, agree=1.0):
         t = {k: {"images_per_s": v} for k, v in (("ort-fp32", fp32), ("ort-int8", int8), ("torch", torch))}

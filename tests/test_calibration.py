@@ -6,15 +6,23 @@ import sys
 import numpy as np
 import pytest
 
-from calibration.cli import main as calibrate_main
-from calibration.scene_scale import calibrate_scene
-from edge_runtime.calibration_file import load_calibration, read_calibration
-from edge_runtime.camera import Attitude, Intrinsics, Mount
-from edge_runtime.contract import Task
-from edge_runtime.errors import InputError
-from edge_runtime.inference import OnnxModel
-from edge_runtime.scale import (AltitudeScaleConfig, AltitudeScaleEstimator, frame_scale, ground_plane_depth)
-from edge_runtime.scene import Scene, SceneMeta, SceneWriter
+from edge_landing.calibration.cli import main as calibrate_main
+from edge_landing.calibration.scene_scale import calibrate_scene
+from edge_landing.evaluation.scene import Scene, SceneMeta, SceneWriter
+from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount
+from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.perception.calibration_file import (
+    load_calibration,
+    read_calibration,
+)
+from edge_landing.runtime.perception.contract import Task
+from edge_landing.runtime.perception.inference import OnnxModel
+from edge_landing.runtime.perception.scale import (
+    AltitudeScaleConfig,
+    AltitudeScaleEstimator,
+    frame_scale,
+    ground_plane_depth,
+)
 from tests.helpers import tiny_onnx_model
 
 H, W = 16, 24
@@ -52,13 +60,13 @@ def test_calibration_recovers_a_known_scale(tmp_path, model_path):
 def test_cli_writes_scene_calibration_json_and_it_loads_back(tmp_path, model_path, capsys):
     scene = write_scaled_scene(tmp_path / "scene", scale=0.4)
     assert calibrate_main([str(scene), "--model", str(model_path), "--threads", "1"]) == 0
-    data = json.loads((scene / "calibration.json").read_text())
+    data = json.loads((scene / "edge_landing.calibration.json").read_text())
     assert data["scale"] == pytest.approx(0.4, rel=0.01)
     for key in ("mad", "min_ratio", "max_ratio", "frames_used", "model_sha256", "model_path", "scene_path",
                 "created_utc", "ratios"):
         assert key in data
     sha = OnnxModel.load(model_path, threads=1).sha256
-    assert load_calibration(scene / "calibration.json", model_sha256=sha) == pytest.approx(data["scale"])
+    assert load_calibration(scene / "edge_landing.calibration.json", model_sha256=sha) == pytest.approx(data["scale"])
     assert f"scale {data['scale']:.4f}" in capsys.readouterr().out
 
 
@@ -81,7 +89,7 @@ def test_spread_out_scene_is_flagged_unreliable(tmp_path, model_path, capsys):
     writer.close()
     assert calibrate_main([str(scene), "--model", str(model_path)]) == 0
     assert "frames disagree" in capsys.readouterr().out
-    assert read_calibration(scene / "calibration.json").reliable is False
+    assert read_calibration(scene / "edge_landing.calibration.json").reliable is False
 
 
 def test_scene_without_depth_is_refused_with_one_line(tmp_path, model_path, capsys):
@@ -113,11 +121,11 @@ def test_empty_and_malformed_inputs_give_clear_errors(tmp_path, model_path, caps
 
 def test_cli_subprocess_exit_codes(tmp_path, model_path):
     scene = write_scaled_scene(tmp_path / "scene", frames=2)
-    ok = subprocess.run([sys.executable, "-m", "calibration.cli", str(scene), "--model", str(model_path)],
+    ok = subprocess.run([sys.executable, "-m", "edge_landing.calibration.cli", str(scene), "--model", str(model_path)],
                         capture_output=True, text=True, timeout=120)
     assert ok.returncode == 0, ok.stderr
-    assert (scene / "calibration.json").exists()
-    bad = subprocess.run([sys.executable, "-m", "calibration.cli", str(tmp_path / "nowhere"), "--model",
+    assert (scene / "edge_landing.calibration.json").exists()
+    bad = subprocess.run([sys.executable, "-m", "edge_landing.calibration.cli", str(tmp_path / "nowhere"), "--model",
                           str(model_path)], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "does not exist" in bad.stderr and "Traceback" not in bad.stderr
 
@@ -135,7 +143,7 @@ def plane_frame(agl_m, attitude, true_scale, noise=0.03, seed=0, size=(48, 64)):
 
 
 def test_ground_plane_depth_puts_points_on_the_plane():
-    from edge_runtime.camera import ned_from_camera
+    from edge_landing.runtime.core.camera import ned_from_camera
 
     att = Attitude(0.1, -0.05, 1.2)
     intr = Intrinsics.from_hfov(64, 48)
@@ -203,7 +211,7 @@ def test_bad_frames_are_marked_invalid_not_raised():
 # -- the same on generator scenes (sim ray casts real geometry: houses, trees, gentle terrain) -----------------
 @pytest.fixture(scope="module")
 def sim_scenes(tmp_path_factory):
-    sim = pytest.importorskip("sim")
+    sim = pytest.importorskip("edge_landing.sim")
     pytest.importorskip("embreex")
     root = tmp_path_factory.mktemp("sim")
     common = dict(style=sim.Style.SUBURBAN, seed=2, width=96, height=72, write_normals=False)

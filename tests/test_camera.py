@@ -4,7 +4,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from edge_runtime.camera import Intrinsics
+from edge_landing.runtime.core.camera import Intrinsics
 
 PIXEL_CENTRES = np.stack(np.meshgrid(np.arange(64) + 0.5, np.arange(48) + 0.5), axis=-1)
 

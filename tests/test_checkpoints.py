@@ -5,12 +5,15 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from edge_runtime.contract import Task  # noqa: E402
-from edge_runtime.errors import InputError  # noqa: E402
-from export.checkpoints import load_state_dict_strict, strip_prefix, trusted_checkpoints  # noqa: E402
-from export.zoo import get_arch  # noqa: E402
-from export.zoo.densedepth import CLASSIFIER_PREFIX  # noqa: E402
-
+from edge_landing.export.checkpoints import (  # noqa: E402
+    load_state_dict_strict,
+    strip_prefix,
+    trusted_checkpoints,
+)
+from edge_landing.export.zoo import get_arch  # noqa: E402
+from edge_landing.export.zoo.densedepth import CLASSIFIER_PREFIX  # noqa: E402
+from edge_landing.runtime.core.errors import InputError  # noqa: E402
+from edge_landing.runtime.perception.contract import Task  # noqa: E402
 
 # Keep torch to one thread in this module (tests/conftest.py).
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -2,17 +2,17 @@
 import numpy as np
 import pytest
 
-from benchmarks.cli import main as bench_main
-from calibration.cli import main as calibrate_main
-from edge_runtime.contract import Task
-from edge_runtime.eval_cli import main as eval_main
-from edge_runtime.inference import OnnxModel
-from edge_runtime.errors import ContractError
-from edge_runtime.pipeline import JointInference, PairInference
-from export.cli import main as export_main
-from export.quantize_cli import main as quantize_main
-from export.train_cli import main as train_main
-from sim.cli import main as sim_main
+from edge_landing.benchmarks.cli import main as bench_main
+from edge_landing.calibration.cli import main as calibrate_main
+from edge_landing.cli.eval_cli import main as eval_main
+from edge_landing.export.cli import main as export_main
+from edge_landing.export.quantize_cli import main as quantize_main
+from edge_landing.export.train_cli import main as train_main
+from edge_landing.runtime.core.errors import ContractError
+from edge_landing.runtime.perception.contract import Task
+from edge_landing.runtime.perception.inference import OnnxModel
+from edge_landing.runtime.pipeline import JointInference, PairInference
+from edge_landing.sim.cli import main as sim_main
 from tests.helpers import tiny_onnx_model
 from tests.test_train import write_tiny_scene
 
@@ -96,8 +96,8 @@ def test_train_does_not_overwrite_an_earlier_run_unless_asked(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("module,argv", [
-    ("export.train_cli", ["--arch", "edgenet", "--train", "scenes/a", "--out", "runs/a"]),
-    ("export.cli", ["--arch", "edgenet", "--out", "m.onnx"]),
+    ("edge_landing.export.train_cli", ["--arch", "edgenet", "--train", "scenes/a", "--out", "runs/a"]),
+    ("edge_landing.export.cli", ["--arch", "edgenet", "--out", "m.onnx"]),
 ])
 def test_missing_export_extra_is_one_line(module, argv):
     """Without torch (the [export] extra) the command names the extra to install instead of a traceback."""

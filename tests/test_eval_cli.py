@@ -6,13 +6,19 @@ import cv2
 import numpy as np
 import pytest
 
-from edge_runtime.camera import Intrinsics
-from edge_runtime.contract import Task
-from edge_runtime.eval_cli import main as eval_main
-from edge_runtime.evaluation import EvalConfig, evaluate_scene
-from edge_runtime.inference import OnnxModel
-from edge_runtime.metrics import DEPTH_KEYS, Averaging, depth_metrics, hvo_metrics, median_scaled_depth_metrics
-from edge_runtime.scene import Scene, SceneMeta, SceneWriter
+from edge_landing.cli.eval_cli import main as eval_main
+from edge_landing.evaluation.evaluate import EvalConfig, evaluate_scene
+from edge_landing.evaluation.metrics import (
+    DEPTH_KEYS,
+    Averaging,
+    depth_metrics,
+    hvo_metrics,
+    median_scaled_depth_metrics,
+)
+from edge_landing.evaluation.scene import Scene, SceneMeta, SceneWriter
+from edge_landing.runtime.core.camera import Intrinsics
+from edge_landing.runtime.perception.contract import Task
+from edge_landing.runtime.perception.inference import OnnxModel
 from tests.helpers import tiny_onnx_model
 
 H, W = 16, 24
@@ -97,13 +103,13 @@ def test_predictions_are_resized_to_the_ground_truth(tmp_path, model_path):
 
 
 def test_calibrated_rows_use_the_calibration_file(tmp_path, model_path, capsys):
-    from calibration.cli import main as calibrate_main
+    from edge_landing.calibration.cli import main as calibrate_main
 
     scene = write_scene(tmp_path / "scene")
     assert calibrate_main([str(scene), "--model", str(model_path)]) == 0
-    scale = json.loads((scene / "calibration.json").read_text())["scale"]
+    scale = json.loads((scene / "edge_landing.calibration.json").read_text())["scale"]
     out = tmp_path / "r.json"
-    assert eval_main([str(model_path), str(scene), "--calibration", str(scene / "calibration.json"),
+    assert eval_main([str(model_path), str(scene), "--calibration", str(scene / "edge_landing.calibration.json"),
                       "--json", str(out), "--min-depth", "1e-3", "--max-depth", "80", "--paper"]) == 0
     printed = capsys.readouterr().out
     assert "cal tiny" in printed and "paper * AdaBins-80" in printed and "paper SafeUAV-Net-Large" in printed
@@ -166,11 +172,11 @@ def test_bad_input_is_one_line_and_nonzero(tmp_path, model_path, capsys):
 
 def test_subprocess_exit_codes(tmp_path, model_path):
     scene = write_scene(tmp_path / "scene", frames=1)
-    ok = subprocess.run([sys.executable, "-m", "edge_runtime.eval_cli", str(model_path), str(scene)],
+    ok = subprocess.run([sys.executable, "-m", "edge_landing.cli.eval_cli", str(model_path), str(scene)],
                         capture_output=True, text=True, timeout=120)
     assert ok.returncode == 0, ok.stderr
     assert "AbsRel" in ok.stdout
-    bad = subprocess.run([sys.executable, "-m", "edge_runtime.eval_cli", str(model_path), str(tmp_path)],
+    bad = subprocess.run([sys.executable, "-m", "edge_landing.cli.eval_cli", str(model_path), str(tmp_path)],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "no rgb/ folder" in bad.stderr and "Traceback" not in bad.stderr
 

@@ -5,14 +5,20 @@ import pytest
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
-from edge_runtime.contract import (DepthConvention, DepthSpec, InputSpec, Layout, ModelContract,  # noqa: E402
-                                   Task)
-from edge_runtime.errors import ContractError, EdgeError  # noqa: E402
-from edge_runtime.inference import OnnxModel, file_sha256  # noqa: E402
-from export.cli import main as export_main  # noqa: E402
-from export.onnx_export import ExportSettings, export_onnx  # noqa: E402
-from export.zoo import get_arch  # noqa: E402
-from export.zoo.registry import ArchSpec  # noqa: E402
+from edge_landing.export.cli import main as export_main  # noqa: E402
+from edge_landing.export.onnx_export import ExportSettings, export_onnx  # noqa: E402
+from edge_landing.export.zoo import get_arch  # noqa: E402
+from edge_landing.export.zoo.registry import ArchSpec  # noqa: E402
+from edge_landing.runtime.core.errors import ContractError, EdgeError  # noqa: E402
+from edge_landing.runtime.perception.contract import (  # noqa: E402
+    DepthConvention,
+    DepthSpec,
+    InputSpec,
+    Layout,
+    ModelContract,
+    Task,
+)
+from edge_landing.runtime.perception.inference import OnnxModel, file_sha256  # noqa: E402
 
 QUIET = ExportSettings(progress=False, threads=1)
 

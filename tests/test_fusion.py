@@ -7,13 +7,30 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from edge_runtime.camera import Attitude, Intrinsics, Mount, ned_from_camera
-from edge_runtime.errors import InputError
-from edge_runtime.fusion import DEGRADED_NO_HVO, FusionConfig, LandingFuser
-from edge_runtime.geometry import hvo_from_normals, normals_from_depth
-from edge_runtime.messages import Prediction
-from tests.fusion_scenes import (Box, Scene, check_target_on_gt, gt_disc_ok, prediction, state_at, target_ned,
-                                 tilted_plane)
+from edge_landing.runtime.core.camera import (
+    Attitude,
+    Intrinsics,
+    Mount,
+    ned_from_camera,
+)
+from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.geometry import hvo_from_normals, normals_from_depth
+from edge_landing.runtime.core.messages import Prediction
+from edge_landing.runtime.fusion.fuser import (
+    DEGRADED_NO_HVO,
+    FusionConfig,
+    LandingFuser,
+)
+from tests.fusion_scenes import (
+    Box,
+    Scene,
+    check_target_on_gt,
+    gt_disc_ok,
+    prediction,
+    state_at,
+    target_ned,
+    tilted_plane,
+)
 
 INTR = Intrinsics.from_hfov(160, 120)
 MOUNT = Mount()                       # 45° below the horizon
@@ -282,7 +299,7 @@ def test_views_without_safe_area_give_no_target():
 
 
 def test_clearance_is_a_safe_lower_bound_to_the_nearest_bad_cell():
-    from edge_runtime.grid import clearance_from_mask
+    from edge_landing.runtime.fusion.grid import clearance_from_mask
 
     cell = 0.5
     mask = np.ones((41, 41), bool)

@@ -9,9 +9,9 @@ import math
 
 import numpy as np
 
-from edge_runtime.camera import Attitude, Intrinsics, Mount
-from edge_runtime.fusion import FusionConfig, LandingFuser
-from edge_runtime.messages import Prediction
+from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount
+from edge_landing.runtime.core.messages import Prediction
+from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from tests.fusion_scenes import Box, Scene, gt_disc_ok, state_at
 
 INTR = Intrinsics.from_hfov(160, 120)

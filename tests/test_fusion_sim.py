@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from edge_runtime.camera import Intrinsics, Mount
-from edge_runtime.fusion import FusionConfig, LandingFuser
-from edge_runtime.messages import Prediction, VehicleState
+from edge_landing.runtime.core.camera import Intrinsics, Mount
+from edge_landing.runtime.core.messages import Prediction, VehicleState
+from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from tests.fusion_scenes import Render, check_target_on_gt, prediction, target_ned
 
-sim = pytest.importorskip("sim", reason="the sim extra (trimesh, embreex) is needed for ground-truth scenes")
+sim = pytest.importorskip("edge_landing.sim", reason="the sim extra (trimesh, embreex) is needed for ground-truth scenes")
 
 INTR = Intrinsics.from_hfov(160, 120)
 MOUNT = Mount()
@@ -43,7 +43,7 @@ def test_sim_ground_truth_targets_lie_on_safe_ground(style, hvo):
 
 
 def test_sim_flight_keeps_safe_targets_in_ned():
-    from sim.flight import plan_flight
+    from edge_landing.sim.flight import plan_flight
 
     world = sim.build_world("urban", 1)
     renderer = sim.Renderer(world, INTR, MOUNT)

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from edge_runtime.contract import Layout, ModelContract, Task
-from edge_runtime.errors import ContractError, InputError
-from edge_runtime.inference import OnnxModel
+from edge_landing.runtime.core.errors import ContractError, InputError
+from edge_landing.runtime.perception.contract import Layout, ModelContract, Task
+from edge_landing.runtime.perception.inference import OnnxModel
 from tests.helpers import tiny_onnx_model
 
 
@@ -59,8 +59,8 @@ def test_bad_image_is_rejected(tmp_path):
 @pytest.mark.parametrize("layout", [Layout.NCHW, Layout.NHWC])
 @pytest.mark.parametrize("color", ["RGB", "BGR"])
 def test_preprocess_matches_the_contract_formula(layout, color):
-    from edge_runtime.contract import HvoSpec, InputSpec
-    from edge_runtime.inference import preprocess
+    from edge_landing.runtime.perception.contract import HvoSpec, InputSpec
+    from edge_landing.runtime.perception.inference import preprocess
 
     mean, std = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
     contract = ModelContract("t", Task.HVO, InputSpec("image", layout, 12, 20, color=color, mean=mean, std=std),

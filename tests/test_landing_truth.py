@@ -6,8 +6,8 @@ import pytest
 
 pytest.importorskip("embreex")
 
-import sim  # noqa: E402
-from benchmarks.landing_truth import TruthConfig, check_target, evaluate  # noqa: E402
+from edge_landing import sim  # noqa: E402
+from edge_landing.benchmarks.landing_truth import TruthConfig, check_target, evaluate  # noqa: E402
 
 
 @pytest.fixture(scope="module")

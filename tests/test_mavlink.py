@@ -10,13 +10,26 @@ import time
 import numpy as np
 import pytest
 
-from edge_runtime.errors import InputError
-from edge_runtime.mavlink_link import Autopilot, LinkConfig, MavlinkLink, check_url, load_mavutil, load_signing_key
-from edge_runtime.messages import Target
-from edge_runtime.run_cli import main
-from edge_runtime.telemetry import TelemetryBuffer
-from tests.run_helpers import (LoopbackAutopilot, flat_ground_model, free_tcp_port, free_udp_port, wait_for,
-                               write_video)
+from edge_landing.cli.run import main
+from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.messages import Target
+from edge_landing.runtime.io.mavlink_link import (
+    Autopilot,
+    LinkConfig,
+    MavlinkLink,
+    check_url,
+    load_mavutil,
+    load_signing_key,
+)
+from edge_landing.runtime.io.telemetry import TelemetryBuffer
+from tests.run_helpers import (
+    LoopbackAutopilot,
+    flat_ground_model,
+    free_tcp_port,
+    free_udp_port,
+    wait_for,
+    write_video,
+)
 
 AGL_M = 10.0
 
@@ -228,7 +241,7 @@ def test_udpin_link_answers_a_ground_station_that_connects(assets):
 
 @pytest.mark.slow
 def test_sim_flight_video_to_landing_targets(assets, tmp_path):
-    sim = pytest.importorskip("sim")
+    sim = pytest.importorskip("edge_landing.sim")
     sim.generate(sim.SimConfig(out=tmp_path / "flight", frames=6, width=128, height=96, flight=True))
     video = tmp_path / "flight" / "flight.mp4"
     port = free_udp_port()

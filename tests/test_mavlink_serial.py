@@ -14,9 +14,9 @@ pytest.importorskip("serial")
 if not sys.platform.startswith("linux"):
     pytest.skip("pseudo-terminals as serial ports: Linux only", allow_module_level=True)
 
-from edge_runtime.mavlink_link import LinkConfig, MavlinkLink, load_mavutil  # noqa: E402
-from edge_runtime.messages import Target  # noqa: E402
-from edge_runtime.telemetry import TelemetryBuffer  # noqa: E402
+from edge_landing.runtime.core.messages import Target  # noqa: E402
+from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink, load_mavutil  # noqa: E402
+from edge_landing.runtime.io.telemetry import TelemetryBuffer  # noqa: E402
 
 
 def _read_messages(fd: int, parser, seconds: float) -> list:

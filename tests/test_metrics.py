@@ -3,10 +3,23 @@ import math
 import numpy as np
 import pytest
 
-from edge_runtime.errors import InputError
-from edge_runtime.metrics import (DEPTH_KEYS, Averaging, DepthAccumulator, HvoAccumulator, MeanAccumulator,
-                                  depth_metrics, hvo_confusion, hvo_metrics, median_rel, median_scale,
-                                  median_scaled_depth_metrics, ssim, ssim_index, ssim_map)
+from edge_landing.evaluation.metrics import (
+    DEPTH_KEYS,
+    Averaging,
+    DepthAccumulator,
+    HvoAccumulator,
+    MeanAccumulator,
+    depth_metrics,
+    hvo_confusion,
+    hvo_metrics,
+    median_rel,
+    median_scale,
+    median_scaled_depth_metrics,
+    ssim,
+    ssim_index,
+    ssim_map,
+)
+from edge_landing.runtime.core.errors import InputError
 
 
 def test_depth_metrics_match_a_hand_computed_case():

@@ -4,13 +4,13 @@ import numpy as np
 import onnx
 import pytest
 
-from edge_runtime.contract import Task
-from edge_runtime.errors import EXIT_BAD_INPUT
-from edge_runtime.inference import OnnxModel, file_sha256
-from edge_runtime.scene import Scene
-from export.quant_check import compare
-from export.quantize import Tolerance, check_tolerance, depth_head_nodes
-from export.quantize_cli import main
+from edge_landing.cli.common import EXIT_BAD_INPUT
+from edge_landing.evaluation.scene import Scene
+from edge_landing.export.quant_check import compare
+from edge_landing.export.quantize import Tolerance, check_tolerance, depth_head_nodes
+from edge_landing.export.quantize_cli import main
+from edge_landing.runtime.perception.contract import Task
+from edge_landing.runtime.perception.inference import OnnxModel, file_sha256
 from tests.quant_models import textured_scene, tiny_conv_net
 
 
@@ -131,7 +131,7 @@ def test_depth_is_compared_with_fp32_when_ground_truth_is_out_of_the_models_rang
 
 
 def test_calibration_from_two_scenes_shares_and_interleaves_frames(models, tmp_path):
-    from export.quantize import split_frames
+    from edge_landing.export.quantize import split_frames
 
     a, b = Scene(models["good"]), Scene(textured_scene(tmp_path / "other", 8, seed=9))
     calib, held = split_frames([a, b], 5, 4)

@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
-from edge_runtime.calibration_file import SceneCalibration
-from edge_runtime.contract import Task
-from edge_runtime.inference import file_sha256
-from edge_runtime.run_cli import main
+from edge_landing.cli.run import main
+from edge_landing.runtime.perception.calibration_file import SceneCalibration
+from edge_landing.runtime.perception.contract import Task
+from edge_landing.runtime.perception.inference import file_sha256
 from tests.helpers import tiny_onnx_model
 from tests.run_helpers import flat_ground_model, write_video
 
@@ -49,7 +49,7 @@ def test_video_run_logs_every_decision_records_overlay_and_prints_summary(assets
 def test_max_frames_and_calibration_scale(assets, tmp_path):
     model = flat_ground_model(tmp_path / "half.onnx", agl_m=5.0)  # predicts half the true distance
     cal = SceneCalibration(2.0, 0.01, 1.98, 2.02, 5, 5, file_sha256(model), str(model), "scene", "now", 0.5, 200.0)
-    cal_path = cal.save(tmp_path / "calibration.json")
+    cal_path = cal.save(tmp_path / "edge_landing.calibration.json")
     log_path = tmp_path / "t.jsonl"
     assert main(["--camera", assets["video"], "--model", str(model), "--calibration", str(cal_path),
                  "--max-frames", "4", "--log", str(log_path)]) == 0
@@ -105,7 +105,7 @@ def test_model_without_contract_is_one_line(assets, tmp_path, capsys):
 def test_sigint_exits_cleanly_with_summary_and_flushed_log(assets, tmp_path):
     log_path = tmp_path / "t.jsonl"
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen([sys.executable, "-m", "edge_runtime.run_cli", "--camera", assets["video"], "--loop",
+    proc = subprocess.Popen([sys.executable, "-m", "edge_landing.cli.run", "--camera", assets["video"], "--loop",
                              "--model", assets["model"], "--log", str(log_path), "--threads", "1"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=str(tmp_path))
     try:

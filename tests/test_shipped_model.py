@@ -10,11 +10,11 @@ import json
 import numpy as np
 import pytest
 
-from edge_runtime.contract import DepthConvention, Layout, Task
-from edge_runtime.inference import OnnxModel
-from edge_runtime.metrics import DepthAccumulator, HvoAccumulator
-from edge_runtime.models import MODELS_DIR, default_model_path
-from edge_runtime.scene import Scene
+from edge_landing.evaluation.metrics import DepthAccumulator, HvoAccumulator
+from edge_landing.evaluation.scene import Scene
+from edge_landing.runtime.models import MODELS_DIR, default_model_path
+from edge_landing.runtime.perception.contract import DepthConvention, Layout, Task
+from edge_landing.runtime.perception.inference import OnnxModel
 
 # Measured on this test's own scenes (suburban seed 101, urban seed 102, both unseen in training, 3 frames at
 # 120×160) when shipped: (horizontal precision, δ1 after one per-scene scale).
@@ -59,7 +59,7 @@ def test_shipped_files_are_small():
 
 @pytest.fixture(scope="module")
 def unseen_scenes(tmp_path_factory):
-    generate = pytest.importorskip("sim.generate")
+    generate = pytest.importorskip("edge_landing.sim.generate")
     pytest.importorskip("embreex")
     root, scenes = tmp_path_factory.mktemp("shipped"), {}
     for style, seed in SEEDS.items():

@@ -9,13 +9,18 @@ import pytest
 
 pytest.importorskip("embreex")
 
-from edge_runtime.camera import Attitude, Intrinsics, Mount, ned_from_camera, up_in_camera  # noqa: E402
-from edge_runtime.geometry import hvo_from_normals, normals_from_depth  # noqa: E402
-from edge_runtime.scene import Scene  # noqa: E402
-
-import sim  # noqa: E402
-from sim.cli import main as sim_main  # noqa: E402
-from sim.world import Material  # noqa: E402
+from edge_landing import sim  # noqa: E402
+from edge_landing.evaluation.scene import Scene  # noqa: E402
+from edge_landing.runtime.core.camera import (  # noqa: E402
+    Attitude,
+    Intrinsics,
+    Mount,
+    ned_from_camera,
+    up_in_camera,
+)
+from edge_landing.runtime.core.geometry import hvo_from_normals, normals_from_depth  # noqa: E402
+from edge_landing.sim.cli import main as sim_main  # noqa: E402
+from edge_landing.sim.world import Material  # noqa: E402
 
 H, W = 60, 80
 SEED = 11          # one seed for most tests: each world is built once per process (cached)

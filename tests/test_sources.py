@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from edge_runtime.errors import InputError
-from edge_runtime.sources import Grabber, Reader, SourceConfig, SourceKind
+from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.io.sources import Grabber, Reader, SourceConfig, SourceKind
 from tests.run_helpers import write_video
 
 
@@ -145,7 +145,7 @@ def test_lost_camera_is_reopened_with_backoff_and_the_loop_goes_on(caplog):
 def test_sim_source_without_the_extra_names_it(monkeypatch):
     import sys
 
-    from edge_runtime.errors import MissingExtraError
+    from edge_landing.runtime.core.errors import MissingExtraError
 
     monkeypatch.setitem(sys.modules, "sim", None)  # as if the [sim] extra were not installed
     with pytest.raises(MissingExtraError, match=r"edge-landing\[sim\]"):
@@ -154,7 +154,7 @@ def test_sim_source_without_the_extra_names_it(monkeypatch):
 
 @pytest.mark.slow
 def test_sim_source_gives_frames_and_perfect_telemetry():
-    from edge_runtime.telemetry import TelemetryBuffer
+    from edge_landing.runtime.io.telemetry import TelemetryBuffer
 
     telemetry = TelemetryBuffer()
     grabber = Grabber(SourceConfig.from_string("sim:suburban:1", width=64, height=48, fps=20.0),

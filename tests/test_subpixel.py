@@ -3,7 +3,7 @@ import onnxruntime as ort
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from export.subpixel import rewrite_conv_transposes
+from edge_landing.export.subpixel import rewrite_conv_transposes
 
 
 def _conv_transpose_model(k, s, pads, out_pad, bias=True, group=1, seed=0):

@@ -10,15 +10,15 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from edge_runtime.camera import Intrinsics  # noqa: E402
-from edge_runtime.contract import DepthConvention, Task  # noqa: E402
-from edge_runtime.inference import OnnxModel  # noqa: E402
-from edge_runtime.scene import SceneMeta, SceneWriter  # noqa: E402
-from export.augment import AugmentConfig, Augmenter  # noqa: E402
-from export.losses import DepthLossSpace, depth_loss, hvo_loss  # noqa: E402
-from export.train import TrainConfig, _Setup, compute_losses, train  # noqa: E402
-from export.train_cli import main as train_main  # noqa: E402
-from export.zoo import get_arch  # noqa: E402
+from edge_landing.evaluation.scene import SceneMeta, SceneWriter  # noqa: E402
+from edge_landing.export.augment import AugmentConfig, Augmenter  # noqa: E402
+from edge_landing.export.losses import DepthLossSpace, depth_loss, hvo_loss  # noqa: E402
+from edge_landing.export.train import TrainConfig, _Setup, compute_losses, train  # noqa: E402
+from edge_landing.export.train_cli import main as train_main  # noqa: E402
+from edge_landing.export.zoo import get_arch  # noqa: E402
+from edge_landing.runtime.core.camera import Intrinsics  # noqa: E402
+from edge_landing.runtime.perception.contract import DepthConvention, Task  # noqa: E402
+from edge_landing.runtime.perception.inference import OnnxModel  # noqa: E402
 
 H, W = 32, 48
 
@@ -89,7 +89,7 @@ def test_flip_keeps_labels_and_depth_aligned_with_the_image():
 
 
 def test_loss_decreases_on_one_batch(tiny_scenes):
-    from export.datasets import load_scenes
+    from edge_landing.export.datasets import load_scenes
 
     torch.manual_seed(0)
     torch.set_num_threads(1)
@@ -148,7 +148,7 @@ def test_cli_trains_safeuav_small_hvo_and_reports_bad_input(tiny_scenes, tmp_pat
 
 
 def test_widening_keeps_what_the_narrow_edgenet_computes():
-    from export.zoo.edgenet import widen_state_dict
+    from edge_landing.export.zoo.edgenet import widen_state_dict
     spec = get_arch("edgenet")
     torch.manual_seed(0)
     narrow = spec.build(Task.DEPTH_HVO, channels=8)

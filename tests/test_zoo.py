@@ -3,12 +3,11 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from edge_runtime.contract import DepthConvention, Layout, Task  # noqa: E402
-from edge_runtime.errors import InputError  # noqa: E402
-from export.checkpoints import count_parameters  # noqa: E402
-from export.zoo import get_arch  # noqa: E402
-from export.zoo.densenet import DENSENET169, DenseNet  # noqa: E402
-
+from edge_landing.export.checkpoints import count_parameters  # noqa: E402
+from edge_landing.export.zoo import get_arch  # noqa: E402
+from edge_landing.export.zoo.densenet import DENSENET169, DenseNet  # noqa: E402
+from edge_landing.runtime.core.errors import InputError  # noqa: E402
+from edge_landing.runtime.perception.contract import DepthConvention, Layout, Task  # noqa: E402
 
 # Keep torch to one thread in this module (tests/conftest.py).
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

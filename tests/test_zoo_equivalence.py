@@ -23,10 +23,10 @@ import pytest
 torch = pytest.importorskip("torch")
 F = torch.nn.functional
 
-from edge_runtime.contract import Task  # noqa: E402
-from export.zoo import get_arch  # noqa: E402
-from export.zoo.adabins import AdaBins  # noqa: E402
-from export.zoo.efficientnet import EFFICIENTNET_B5_TF, EfficientNet  # noqa: E402
+from edge_landing.export.zoo import get_arch  # noqa: E402
+from edge_landing.export.zoo.adabins import AdaBins  # noqa: E402
+from edge_landing.export.zoo.efficientnet import EFFICIENTNET_B5_TF, EfficientNet  # noqa: E402
+from edge_landing.runtime.perception.contract import Task  # noqa: E402
 
 REL_TOL = 1e-3
 

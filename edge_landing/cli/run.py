@@ -1,0 +1,277 @@
+"""``edge-run``: camera -> depth + HVO -> landing target -> MAVLink, on the drone (DESIGN.md §1, §6, §8).
+
+    edge-run                                        # the built-in synthetic flight, shipped model, prints targets
+    edge-run --camera /dev/video0 --mav udpout:127.0.0.1:14550 --autopilot ardupilot
+    edge-run --camera flight.mp4 --model edgenet.int8.onnx --record overlay.mp4 --log targets.jsonl
+
+Ctrl-C stops cleanly: the summary is printed and every file is flushed.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import math
+import signal
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.runtime.core.camera import Intrinsics, Mount
+from edge_landing.runtime.core.choices import ChoiceEnum
+from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink
+from edge_landing.runtime.io.sources import Grabber, SourceConfig, SourceKind
+from edge_landing.runtime.io.telemetry import TelemetryBuffer
+from edge_landing.runtime.pipeline import (
+    JointInference,
+    PairInference,
+    Pipeline,
+    PipelineOptions,
+    ScaleStage,
+)
+
+log = logging.getLogger("edge-run")
+
+
+class GridMode(ChoiceEnum):
+    NED = "ned"        # the landing grid is kept in local NED across frames (needs LOCAL_POSITION_NED)
+    FRAME = "frame"    # a fresh vehicle-centred grid every frame
+
+    @classmethod
+    def _label(cls) -> str:
+        return "--grid"
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything ``edge-run`` was asked to do (lengths in metres, angles in degrees as typed)."""
+
+    camera: str = "sim"
+    camera_width: int = 0
+    camera_height: int = 0
+    fps: float = 0.0
+    loop: bool = False
+    poses: Optional[str] = None
+    model: Optional[str] = None
+    depth_model: Optional[str] = None
+    hvo_model: Optional[str] = None
+    int8: bool = False
+    calibration: Optional[str] = None
+    altitude_scale: bool = True
+    mav: Optional[str] = None
+    autopilot: Autopilot = Autopilot.ARDUPILOT
+    mav_sysid: int = 1
+    mav_compid: int = 191
+    mav_key: Optional[str] = None
+    vehicle_radius_m: float = 1.0
+    margin_m: float = 1.0
+    threads: int = 2
+    hfov_deg: float = 90.0
+    mount_pitch_deg: float = -45.0
+    record: Optional[str] = None
+    log_path: Optional[str] = None
+    max_frames: int = 0
+    duration_s: float = 0.0
+    overlap: bool = True
+    # NED by default: the landing grid stays put in the world while the vehicle moves (falls back to a fresh
+    # per-frame grid when telemetry has no position). Fusion accumulates per-frame verdicts there, not raw
+    # heights, so the model's frame-to-frame depth scale error (~1 % at 60-80 m) does not break it.
+    grid: GridMode = GridMode.NED
+
+    def __post_init__(self):
+        if self.threads < 1:
+            raise InputError(f"--threads must be at least 1, got {self.threads}")
+        if self.vehicle_radius_m <= 0 or self.margin_m < 0:
+            raise InputError(f"--vehicle-radius must be > 0 and --margin >= 0 (metres), got "
+                             f"{self.vehicle_radius_m} and {self.margin_m}")
+        if not 0 < self.hfov_deg < 180:
+            raise InputError(f"--hfov must be in (0, 180) degrees, got {self.hfov_deg}")
+        if self.model and (self.depth_model or self.hvo_model):
+            raise InputError("give either --model (one joint model) or --depth-model/--hvo-model, not both")
+        if bool(self.depth_model) != bool(self.hvo_model) and not self.model:
+            raise InputError("--depth-model and --hvo-model go together (or use --model for a joint model)")
+        if self.max_frames < 0 or self.duration_s < 0:
+            raise InputError("--max-frames and --duration must be >= 0")
+        if self.fps < 0 or self.camera_width < 0 or self.camera_height < 0:
+            raise InputError(f"--fps, --camera-width and --camera-height must be >= 0 (0 = the camera's default), "
+                             f"got {self.fps}, {self.camera_width}, {self.camera_height}")
+        if self.int8 and (self.model or self.depth_model):
+            raise InputError("--int8 selects the shipped INT8 model; with --model/--depth-model give the INT8 file itself")
+        if self.poses and (self.camera == "sim" or self.camera.startswith("sim:")):
+            raise InputError("--poses replays a recorded flight's telemetry; the sim camera has its own")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = CliParser(prog="edge-run", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
+    src = p.add_argument_group("camera")
+    src.add_argument("--camera", default="sim", help="/dev/videoN or index, video file, image folder or glob, "
+                     "rtsp://... or GStreamer pipeline, or 'sim' (default: the built-in synthetic flight)")
+    src.add_argument("--camera-width", type=int, default=0)
+    src.add_argument("--camera-height", type=int, default=0)
+    src.add_argument("--fps", type=float, default=0.0, help="camera frame rate to ask for (0 = its default)")
+    src.add_argument("--loop", action="store_true", help="repeat a video file or image folder (or the sim flight)")
+    src.add_argument("--poses", help="replay a recorded flight's poses.csv (edge-sim --flight) as telemetry, "
+                     "one row per frame")
+    src.add_argument("--hfov", type=float, default=90.0, help="camera horizontal field of view, degrees")
+    src.add_argument("--mount-pitch", type=float, default=-45.0, help="camera pitch relative to the body, degrees "
+                     "(negative = below the horizon)")
+    m = p.add_argument_group("model")
+    m.add_argument("--model", help="joint depth+HVO ONNX model (default: the shipped edgenet)")
+    m.add_argument("--int8", action="store_true", help="use the shipped INT8 model")
+    m.add_argument("--depth-model", help="depth ONNX model (with --hvo-model)")
+    m.add_argument("--hvo-model", help="HVO ONNX model (with --depth-model)")
+    m.add_argument("--calibration", help="calibration.json from edge-calibrate (depth scale)")
+    m.add_argument("--no-altitude-scale", action="store_true", help="do not estimate the scale from telemetry")
+    m.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (the drone has 2 cores)")
+    m.add_argument("--sequential", action="store_true", help="fuse each frame before the next inference "
+                   "(default: fusion of frame N overlaps inference of frame N+1)")
+    f = p.add_argument_group("landing")
+    f.add_argument("--vehicle-radius", type=float, default=1.0, help="metres")
+    f.add_argument("--margin", type=float, default=1.0, help="extra clearance, metres")
+    f.add_argument("--grid", default="ned", help="ned: keep the landing grid in local NED across frames when the "
+                   "vehicle position is known (default); frame: a fresh grid around the vehicle every frame")
+    k = p.add_argument_group("MAVLink")
+    k.add_argument("--mav", help="pymavlink connection: udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT, /dev/ttyUSB0,57600")
+    k.add_argument("--autopilot", default="ardupilot", help="ardupilot (BODY_FRD targets) or px4 (LOCAL_NED)")
+    k.add_argument("--mav-sysid", type=int, default=1)
+    k.add_argument("--mav-compid", type=int, default=191)
+    k.add_argument("--mav-key", help="MAVLink 2 signing key file (32 bytes, or 64 hex characters)")
+    o = p.add_argument_group("output")
+    o.add_argument("--record", help="overlay video (.mp4)")
+    o.add_argument("--log", dest="log_path", help="every decision as JSON lines")
+    o.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0 = no limit)")
+    o.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0 = no limit)")
+    return p
+
+
+def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
+    a = build_parser().parse_args(argv)
+    return RunConfig(camera=a.camera, camera_width=a.camera_width, camera_height=a.camera_height, fps=a.fps,
+                     loop=a.loop, poses=a.poses, model=a.model, depth_model=a.depth_model, hvo_model=a.hvo_model, int8=a.int8,
+                     calibration=a.calibration, altitude_scale=not a.no_altitude_scale, mav=a.mav,
+                     autopilot=Autopilot.from_string(a.autopilot), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
+                     mav_key=a.mav_key, vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
+                     hfov_deg=a.hfov, mount_pitch_deg=a.mount_pitch, record=a.record, log_path=a.log_path,
+                     max_frames=a.max_frames, duration_s=a.duration, overlap=not a.sequential,
+                     grid=GridMode.from_string(a.grid))
+
+
+def load_inference(cfg: RunConfig):
+    from edge_landing.runtime.perception.inference import OnnxModel
+
+    if cfg.depth_model:
+        return PairInference(OnnxModel.load(cfg.depth_model, cfg.threads), OnnxModel.load(cfg.hvo_model, cfg.threads))
+    if cfg.model:
+        return JointInference(OnnxModel.load(cfg.model, cfg.threads))
+    from edge_landing.runtime.models import default_model_path
+
+    return JointInference(OnnxModel.load(default_model_path(int8=cfg.int8), cfg.threads))
+
+
+def camera_geometry(cfg: RunConfig, grabber: Grabber, first_rgb) -> tuple:
+    """Intrinsics at the frame size and the mount: from the synthetic camera when it knows them, else flags."""
+    reader = grabber.reader
+    intr = getattr(reader, "intrinsics", None)
+    mount = getattr(reader, "mount", None)
+    h, w = first_rgb.shape[:2]
+    intr = intr.scaled(w, h) if intr is not None else Intrinsics.from_hfov(w, h, math.radians(cfg.hfov_deg))
+    return intr, mount or Mount(pitch_rad=math.radians(cfg.mount_pitch_deg))
+
+
+def run(cfg: RunConfig, out=None) -> int:
+    out = out or sys.stdout
+    from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+    from edge_landing.runtime.io.overlay import OverlayRecorder
+    from edge_landing.runtime.perception.scale import (
+        AltitudeScaleEstimator,
+        load_calibration,
+    )
+
+    inference = load_inference(cfg)
+    models = [getattr(inference, n) for n in ("model", "depth_model") if hasattr(inference, n)]
+    calibration = load_calibration(cfg.calibration, models[0].sha256) if cfg.calibration else None
+    src = SourceConfig(camera=cfg.camera, kind=SourceKind.from_string(cfg.camera), width=cfg.camera_width,
+                       height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "")
+    fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m)
+    telemetry = TelemetryBuffer()
+    link = None
+    with contextlib.ExitStack() as stack:
+        if cfg.mav:
+            # The simulator's (or a replayed flight's) telemetry matches its frames; an autopilot's would
+            # describe another flight.
+            link_telemetry = telemetry
+            if src.kind is SourceKind.SIM or cfg.poses:
+                log.info("%s: using its own telemetry; the autopilot's is not used",
+                         "sim camera" if src.kind is SourceKind.SIM else "--poses replay")
+                link_telemetry = TelemetryBuffer()
+            link = MavlinkLink(LinkConfig(cfg.mav, cfg.autopilot, cfg.mav_sysid, cfg.mav_compid, cfg.mav_key),
+                               link_telemetry).start()
+            stack.callback(link.stop)
+        grabber = Grabber(src, telemetry=telemetry).start()
+        stack.callback(grabber.stop)
+        first = grabber.next(timeout_s=30.0)
+        if first is None:
+            raise InputError(f"camera {cfg.camera} gave no frame within 30 s"
+                             + (" (the input is empty or unreadable)" if grabber.ended else ""))
+        intrinsics, mount = camera_geometry(cfg, grabber, first.rgb)
+        fuser = LandingFuser(fusion_cfg, intrinsics, mount)
+        estimator = AltitudeScaleEstimator() if cfg.altitude_scale else None
+        scale = ScaleStage(calibration, estimator, intrinsics, mount)
+        recorder = None
+        if cfg.record:
+            recorder = OverlayRecorder(cfg.record, intrinsics, mount, fps=cfg.fps or 10.0, grid_source=fuser)
+            stack.callback(recorder.close)
+        decision_log = stack.enter_context(open(cfg.log_path, "w", buffering=1)) if cfg.log_path else None
+        pipeline = Pipeline(_Prepend(first, grabber), inference, scale, fuser.update, telemetry, link,
+                            PipelineOptions(cfg.max_frames, cfg.duration_s, overlap=cfg.overlap,
+                                            world_grid=cfg.grid is GridMode.NED), decision_log,
+                            recorder, out)
+        print(f"edge-run: {cfg.camera} -> {inference.name} -> "
+              f"{cfg.mav + ' (' + cfg.autopilot.value + ')' if cfg.mav else 'no MAVLink'}; "
+              f"need clearance {fusion_cfg.required_clearance_m:.1f} m; Ctrl-C to stop", file=out, flush=True)
+        previous = signal.getsignal(signal.SIGINT)
+        signal.signal(signal.SIGINT, lambda *_: pipeline.stop("Ctrl-C"))
+        stack.callback(signal.signal, signal.SIGINT, previous)
+        summary = pipeline.run()
+    print(summary.table(), file=out, flush=True)
+    return 0
+
+
+class _Prepend:
+    """The grabber with the already-taken first frame put back in front."""
+
+    def __init__(self, first, grabber: Grabber):
+        self._first, self._grabber = first, grabber
+
+    def __getattr__(self, name):
+        return getattr(self._grabber, name)
+
+    def next(self, timeout_s: float = 1.0):
+        if self._first is not None:
+            frame, self._first = self._first, None
+            return frame
+        return self._grabber.next(timeout_s)
+
+
+def _main(argv: Optional[Sequence[str]] = None) -> int:
+    cfg = config_from_args(argv)
+    for path, what in ((cfg.model, "--model"), (cfg.depth_model, "--depth-model"), (cfg.hvo_model, "--hvo-model"),
+                       (cfg.calibration, "--calibration"), (cfg.mav_key, "--mav-key")):
+        if path and not Path(path).is_file():
+            raise InputError(f"{what} file {path} does not exist")
+    for path, what in ((cfg.record, "--record"), (cfg.log_path, "--log")):
+        if path and not Path(path).resolve().parent.is_dir():
+            raise InputError(f"{what} {path}: folder {Path(path).resolve().parent} does not exist")
+    return run(cfg)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    return run_cli(_main, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,367 @@
+"""Static INT8 quantization with an accuracy guard (DESIGN.md §9).
+
+ONNX Runtime's static QDQ quantizer with the settings that pay off on an x86 CPU without VNNI: uint8
+activations, int8 weights, per-channel with ``reduce_range``, ``quant_pre_process`` first. Calibration
+frames come from a scene folder and go through the runtime's own preprocessing (``OnnxModel.prepare``);
+the frames after the first ``calib_frames`` are held out and used to compare INT8 with FP32. The model
+contract is carried over and the settings and the comparison are added under ``edge.quantization``.
+Example::
+
+    report = quantize("m.onnx", "m.int8.onnx", QuantizeConfig(calib_scene=Path("scene"), calib_frames=16))
+    if not report.passed:
+        print(report.reasons)          # the INT8 file was not written (unless config.force)
+"""
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from edge_landing.evaluation.scene import Scene
+from edge_landing.runtime.core.choices import ChoiceEnum
+from edge_landing.runtime.core.errors import InputError, SceneError
+from edge_landing.runtime.perception.inference import OnnxModel
+
+from .quant_check import FrameRef, Tolerance, check_tolerance, compare, frame_label
+
+log = logging.getLogger(__name__)
+
+# Ops whose output is the "head": the walk back from the depth output stops after the first one on each path.
+_COMPUTE_OPS = ("Conv", "ConvTranspose", "Gemm", "MatMul")
+_HEAD_WALK_LIMIT = 24  # nodes; a head is a handful of nodes, this only guards against eating the graph
+
+
+class CalibrationMethod(ChoiceEnum):
+    MINMAX = "minmax"
+    ENTROPY = "entropy"
+    PERCENTILE = "percentile"
+
+
+class DepthHead(ChoiceEnum):
+    """Whether the last conv(s) feeding the depth output stay float: ``auto`` = float for depth models."""
+
+    AUTO = "auto"
+    FLOAT = "float"
+    INT8 = "int8"
+
+
+# ONNX Runtime's CPU provider has no int8 ConvTranspose kernel: a quantized one runs as DQ -> float -> Q and is
+# slower than leaving it float (SafeUAV-Net-Small: 78 ms vs 49 ms for its three, same run).
+DEFAULT_FLOAT_OP_TYPES = ("ConvTranspose",)
+# Per-architecture op types kept float by default. AdaBins: the depth is a softmax-weighted sum of bin centres
+# that the mViT's MatMul/Gemm regress from one token; an error there shifts every bin of every pixel at once.
+ARCH_FLOAT_OP_TYPES = {"adabins": DEFAULT_FLOAT_OP_TYPES + ("MatMul", "Gemm")}
+
+
+def float_op_types_for(arch: str) -> Tuple[str, ...]:
+    return ARCH_FLOAT_OP_TYPES.get(arch, DEFAULT_FLOAT_OP_TYPES)
+
+
+@dataclass(frozen=True)
+class QuantizeConfig:
+    calib_scene: Union[Path, Tuple[Path, ...]]   # one scene folder or several (frames shared out evenly)
+    calib_frames: int = 16               # in all (over all scenes)
+    eval_frames: int = 16                # held-out frames compared (after each scene's calibration frames)
+    per_channel: bool = True
+    reduce_range: bool = True
+    method: CalibrationMethod = CalibrationMethod.MINMAX
+    depth_head: DepthHead = DepthHead.AUTO
+    exclude_nodes: Tuple[str, ...] = ()
+    float_op_types: Optional[Tuple[str, ...]] = None   # op types left float; None = the architecture's default
+    subpixel: bool = True                # rewrite strided ConvTranspose as Conv + DepthToSpace (export/subpixel.py)
+    tolerance: Tolerance = Tolerance()
+    force: bool = False                  # write the INT8 file even when it fails the tolerance
+    threads: int = 2
+    progress: bool = True
+
+    @property
+    def calib_scenes(self) -> Tuple[Path, ...]:
+        if isinstance(self.calib_scene, (str, Path)):
+            return (Path(self.calib_scene),)
+        return tuple(Path(p) for p in self.calib_scene)
+
+
+@dataclass
+class QuantReport:
+    input: Path
+    output: Path
+    written: bool
+    passed: bool
+    reasons: List[str]
+    settings: dict
+    comparison: dict
+    size_fp32_mb: float
+    size_int8_mb: float = float("nan")
+
+
+class SceneCalibrationReader:
+    """ONNX Runtime's one-method reader over scene frames, preprocessed exactly as the runtime does."""
+
+    def __init__(self, frames: Sequence[FrameRef], prepare: Callable[[np.ndarray], np.ndarray],
+                 input_name: str, progress: bool = True):
+        self.frames, self.prepare, self.input_name = list(frames), prepare, input_name
+        self.progress = progress
+        self.rewind()
+
+    def rewind(self) -> None:
+        from tqdm import tqdm
+
+        self._iter = iter(tqdm(self.frames, desc="calibrating", unit="frame", disable=not self.progress,
+                               leave=False))
+
+    def get_next(self) -> Optional[Dict[str, np.ndarray]]:
+        ref = next(self._iter, None)
+        if ref is None:
+            return None
+        scene, fid = ref
+        return {self.input_name: self.prepare(scene.read_rgb(fid))}
+
+
+def _shares(total: int, parts: int) -> List[int]:
+    return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
+
+
+def split_frames(scenes: Sequence[Scene], calib_frames: int, eval_frames: int) -> Tuple[List[FrameRef], List[FrameRef]]:
+    """Each scene's first frames calibrate and its next ones are held out; ``calib_frames`` and ``eval_frames``
+    are totals shared evenly between the scenes, and the frames are interleaved (scene 1, scene 2, ...)."""
+    if calib_frames < 1 or eval_frames < 1:
+        raise InputError(f"--frames and --eval-frames must be at least 1, got {calib_frames} and {eval_frames}")
+    if calib_frames < len(scenes) or eval_frames < len(scenes):
+        raise InputError(f"--frames {calib_frames} / --eval-frames {eval_frames} cannot cover {len(scenes)} scenes; "
+                         f"expected at least one of each per scene")
+    calib, held = [], []
+    for scene, n_cal, n_eval in zip(scenes, _shares(calib_frames, len(scenes)), _shares(eval_frames, len(scenes))):
+        if len(scene) <= n_cal:
+            raise SceneError(f"scene {scene.path} has {len(scene)} frame(s); calibrating on {n_cal} of them needs "
+                             f"at least {n_cal + 1} so that some are held out for the accuracy check (lower --frames, "
+                             f"e.g. --frames {max(1, len(scene) * 2 // 3 * len(scenes))}, or make a longer scene with "
+                             f"edge-sim --frames)")
+        calib.append([(scene, f) for f in scene.frame_ids[:n_cal]])
+        held.append([(scene, f) for f in scene.frame_ids[n_cal:n_cal + n_eval]])
+    return _interleave(calib), _interleave(held)
+
+
+def _interleave(groups: List[List[FrameRef]]) -> List[FrameRef]:
+    out: List[FrameRef] = []
+    for i in range(max(len(g) for g in groups)):
+        out.extend(g[i] for g in groups if i < len(g))
+    return out
+
+
+def depth_head_nodes(model, depth_output: str) -> List[str]:
+    """Names of the nodes of the depth head, kept in float.
+
+    With other outputs (a joint depth + HVO net): every node that feeds the depth output and no other output,
+    i.e. the whole depth branch after the shared trunk (quantizing its 3×3 conv made EdgeNet's per-pixel depth
+    too noisy for the fusion's flatness test: 0 of 200 frames with a target, 139 with it in float).
+    A depth-only net: from the output back to (and including) the first compute op on each path.
+    """
+    producers = {out: node for node in model.graph.node for out in node.output}
+    others = [o.name for o in model.graph.output if o.name != depth_output]
+    if others:
+        shared = set(_ancestors(producers, others))
+        return [n for n in _ancestors(producers, [depth_output]) if n not in shared]
+    return _ancestors(producers, [depth_output], stop_at_compute=True, limit=_HEAD_WALK_LIMIT)
+
+
+def _ancestors(producers: dict, outputs: List[str], stop_at_compute: bool = False,
+               limit: Optional[int] = None) -> List[str]:
+    """Names of the nodes the given graph outputs depend on (nearest first); with ``stop_at_compute`` a path
+    ends at its first compute op (Conv, Gemm, ...), which is still included."""
+    found, stack, seen = [], list(outputs), set()
+    while stack and (limit is None or len(found) < limit):
+        node = producers.get(stack.pop())
+        if node is None or node.name in seen:
+            continue
+        seen.add(node.name)
+        found.append(node.name)
+        if not (stop_at_compute and node.op_type in _COMPUTE_OPS):
+            stack.extend(node.input)
+    return found
+
+
+def _name_nodes(model) -> None:
+    """The quantizer's exclusion list works by node name; give unnamed nodes stable unique names."""
+    used = {n.name for n in model.graph.node if n.name}
+    for i, node in enumerate(model.graph.node):
+        if not node.name:
+            name = f"{node.op_type}_{i}"
+            while name in used:
+                name += "_"
+            node.name = name
+            used.add(name)
+
+
+def _pre_process(src: Path, dst: Path) -> None:
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    # Symbolic shape inference fails on some exported graphs; ONNX's own inference is enough for conv nets.
+    attempts = ({}, {"skip_symbolic_shape": True}, {"skip_symbolic_shape": True, "skip_optimization": True})
+    last = None
+    for kwargs in attempts:
+        try:
+            quant_pre_process(str(src), str(dst), **kwargs)
+            return
+        except Exception as exc:  # the pre-processor raises assorted untyped errors
+            last = exc
+            log.info("quant_pre_process %s failed (%s); retrying with fewer steps", kwargs, str(exc)[:120])
+    raise InputError(f"{src}: ONNX Runtime's quant_pre_process failed ({str(last)[:200]})")
+
+
+def _subpixel(model, fp32: OnnxModel, rgb: np.ndarray) -> int:
+    """Rewrite ConvTranspose nodes in place so they quantize (export/subpixel.py); the rewrite is exact, and
+    checked on one frame against the FP32 model so that a bug can never reach the INT8 file."""
+    import onnx
+    import onnxruntime as ort
+
+    from .subpixel import rewrite_conv_transposes
+
+    candidate = onnx.ModelProto()
+    candidate.CopyFrom(model)
+    count = rewrite_conv_transposes(candidate)
+    if count == 0:
+        return 0
+    x = fp32.prepare(rgb)
+    ref = fp32.session.run(None, {fp32.contract.input.name: x})
+    names = [o.name for o in fp32.session.get_outputs()]
+    sess = ort.InferenceSession(candidate.SerializeToString(), providers=["CPUExecutionProvider"])
+    got = sess.run(names, {fp32.contract.input.name: x})
+    for name, a, b in zip(names, ref, got):
+        scale = float(np.max(np.abs(a))) or 1.0
+        if a.shape != b.shape or float(np.max(np.abs(a - b))) > 1e-4 * scale:
+            log.warning("sub-pixel rewrite changed output %s; keeping ConvTranspose", name)
+            return 0
+    model.CopyFrom(candidate)
+    return count
+
+
+def _settings(config: QuantizeConfig, calib: List[FrameRef], excluded: List[str], float_head: bool, fp32: OnnxModel,
+              float_ops: Tuple[str, ...]) -> dict:
+    import onnxruntime
+
+    return {"format": "QDQ", "activations": "QUInt8", "weights": "QInt8", "per_channel": config.per_channel,
+            "reduce_range": config.reduce_range, "method": config.method.value, "float_depth_head": float_head,
+            "excluded_nodes": excluded, "float_op_types": list(float_ops),
+            "calibration": {"scenes": [str(p) for p in config.calib_scenes], "frames": len(calib),
+                            "first": frame_label(calib[0]), "last": frame_label(calib[-1])},
+            "fp32_sha256": fp32.sha256, "onnxruntime": onnxruntime.__version__, "tolerance": asdict(config.tolerance)}
+
+
+class _QuantizerLogFilter(logging.Filter):
+    """ONNX Runtime's quantizer logs INFO lines to the root logger, one per weight channel whose scale it
+    raises for the int32 bias (thousands for big models); count those and let warnings through."""
+
+    def __init__(self):
+        super().__init__()
+        self.raised_scales = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno > logging.INFO:
+            return True
+        if "Increased scale" in str(record.msg):
+            self.raised_scales += 1
+        return False
+
+
+def _run_quantizer(src: Path, dst: Path, reader: SceneCalibrationReader, config: QuantizeConfig,
+                   excluded: List[str], float_ops: Tuple[str, ...]) -> int:
+    """Run ONNX Runtime's static quantizer; returns how many weight channels had their scale raised so that
+    the int32 bias fits (each such channel loses weight precision: a hint when the tolerance trips)."""
+    from onnxruntime.quantization import CalibrationMethod as OrtMethod
+    from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.registry import QDQRegistry, QLinearOpsRegistry
+
+    op_types = sorted((set(QLinearOpsRegistry) | set(QDQRegistry)) - set(float_ops))
+    method = {CalibrationMethod.MINMAX: OrtMethod.MinMax, CalibrationMethod.ENTROPY: OrtMethod.Entropy,
+              CalibrationMethod.PERCENTILE: OrtMethod.Percentile}[config.method]
+    quiet = _QuantizerLogFilter()
+    logging.getLogger().addFilter(quiet)
+    try:
+        # Not CalibMaxIntermediateOutputs: in this ONNX Runtime it drops the collected chunk instead of merging it.
+        quantize_static(str(src), str(dst), reader, quant_format=QuantFormat.QDQ, per_channel=config.per_channel,
+                        reduce_range=config.reduce_range, activation_type=QuantType.QUInt8,
+                        weight_type=QuantType.QInt8, nodes_to_exclude=excluded, calibrate_method=method,
+                        op_types_to_quantize=op_types)
+    finally:
+        logging.getLogger().removeFilter(quiet)
+    if quiet.raised_scales:
+        log.info("ONNX Runtime raised the scale of %d weight channel(s) so that their int32 bias fits",
+                 quiet.raised_scales)
+    return quiet.raised_scales
+
+
+def _write_metadata(path: Path, fp32: OnnxModel, settings: dict) -> None:
+    """Every metadata entry of the FP32 file (the contract and anything else), plus edge.quantization."""
+    import onnx
+
+    model = onnx.load(str(path))
+    props = {**fp32.session.get_modelmeta().custom_metadata_map,
+             **fp32.contract.with_quantization(settings).to_metadata()}
+    del model.metadata_props[:]
+    for key, value in props.items():
+        model.metadata_props.add(key=key, value=value)
+    onnx.save(model, str(path))
+
+
+def quantize(input: os.PathLike | str, output: os.PathLike | str, config: QuantizeConfig) -> QuantReport:
+    """Quantize ``input`` to ``output`` and check it on held-out frames.
+
+    Returns the report; the INT8 file is written only when it passes the tolerance or ``config.force``
+    is set (a failing model is never left at ``output`` otherwise). The FP32 file is never touched.
+    """
+    import onnx
+
+    src, dst = Path(input), Path(output)
+    if dst.resolve() == src.resolve():
+        raise InputError(f"--out {dst} is the FP32 input itself; choose another file (e.g. model.int8.onnx)")
+    if not dst.parent.is_dir():
+        raise InputError(f"output folder {dst.parent} does not exist")
+    fp32 = OnnxModel.load(src, threads=config.threads)
+    if fp32.contract.quantization is not None:
+        raise InputError(f"{src} is already quantized (edge.quantization is set); quantize the FP32 model")
+    calib, held_out = split_frames([Scene(p) for p in config.calib_scenes], config.calib_frames, config.eval_frames)
+    float_head = (config.depth_head is DepthHead.FLOAT
+                  or (config.depth_head is DepthHead.AUTO and fp32.contract.depth is not None))
+    if float_head and fp32.contract.depth is None:
+        raise InputError(f"{src} has no depth head (edge.task '{fp32.contract.task}'); drop --keep-depth-head-float")
+
+    with tempfile.TemporaryDirectory(prefix=".edge-quantize-", dir=dst.parent) as tmp:
+        pre, out_tmp = Path(tmp) / "pre.onnx", Path(tmp) / "int8.onnx"
+        _pre_process(src, pre)
+        model = onnx.load(str(pre))
+        rewritten = _subpixel(model, fp32, calib[0][0].read_rgb(calib[0][1])) if config.subpixel else 0
+        _name_nodes(model)
+        onnx.save(model, str(pre))
+        names = {n.name for n in model.graph.node}
+        unknown = [n for n in config.exclude_nodes if n not in names]
+        if unknown:
+            raise InputError(f"--exclude-node {unknown[0]} is not a node of {src} after pre-processing")
+        excluded = list(config.exclude_nodes)
+        if float_head:
+            excluded += [n for n in depth_head_nodes(model, fp32.contract.depth.output) if n not in excluded]
+        del model
+        reader = SceneCalibrationReader(calib, fp32.prepare, fp32.contract.input.name, config.progress)
+        float_ops = (config.float_op_types if config.float_op_types is not None
+                     else float_op_types_for(fp32.contract.arch))
+        raised = _run_quantizer(pre, out_tmp, reader, config, excluded, float_ops)
+        settings = {**_settings(config, calib, excluded, float_head, fp32, float_ops),
+                    "subpixel_conv_transposes": rewritten, "weight_channels_scaled_for_bias": raised}
+        _write_metadata(out_tmp, fp32, settings)
+        comparison = compare(fp32, OnnxModel.load(out_tmp, threads=config.threads), held_out,
+                             config.progress)
+        reasons = check_tolerance(comparison, config.tolerance)
+        passed = not reasons
+        settings = {**settings, "comparison": comparison, "passed": passed, "forced": bool(reasons) and config.force}
+        _write_metadata(out_tmp, fp32, settings)
+        report = QuantReport(src, dst, written=False, passed=passed, reasons=reasons, settings=settings,
+                             comparison=comparison, size_fp32_mb=src.stat().st_size / 1e6,
+                             size_int8_mb=out_tmp.stat().st_size / 1e6)
+        if passed or config.force:
+            os.replace(out_tmp, dst)  # atomic: a reader never sees half a model
+            report.written = True
+    return report

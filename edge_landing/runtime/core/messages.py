@@ -1,0 +1,89 @@
+"""Typed messages passed between the stages (source -> inference -> fusion -> link).
+
+Each message says which frame it came from, when it was captured (monotonic seconds), whether it is valid
+and, if not, why, and how long each stage took.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from edge_landing.runtime.core.camera import Attitude
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera image. ``rgb`` is uint8 H×W×3 in RGB order."""
+
+    frame_id: int
+    capture_time_s: float
+    rgb: np.ndarray
+    source: str = ""
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Network outputs for one frame, already decoded by the model contract.
+
+    ``depth_m``: float32 H×W planar z-depth in metres (camera frame), NaN where invalid; the model's raw
+    scale times ``scale`` (1.0 when uncalibrated). ``hvo_prob``: float32 H×W×3 class probabilities
+    (horizontal, vertical, other). Either may be None when the model does not have that head.
+    """
+
+    frame_id: int
+    capture_time_s: float
+    depth_m: Optional[np.ndarray]
+    hvo_prob: Optional[np.ndarray]
+    valid: bool = True
+    reason: str = ""
+    scale: float = 1.0
+    timings_s: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Target:
+    """A landing target, or the absence of one with a reason (DESIGN.md §6 step 7).
+
+    ``position_body_frd_m``: target point in the body FRD frame at capture time (metres).
+    ``position_ned_m``: absolute local NED position, when the vehicle position was known.
+    Angles are from the image centre (radians, camera x right / y down); sizes are the angular
+    diameter of the clear disc.
+    """
+
+    frame_id: int
+    capture_time_s: float
+    valid: bool
+    reason: str = ""
+    position_body_frd_m: Optional[np.ndarray] = None
+    position_ned_m: Optional[np.ndarray] = None
+    range_m: float = float("nan")
+    angle_x_rad: float = float("nan")
+    angle_y_rad: float = float("nan")
+    size_x_rad: float = float("nan")
+    size_y_rad: float = float("nan")
+    clearance_m: float = float("nan")
+    confidence: float = 0.0
+    timings_s: dict = field(default_factory=dict)
+
+    @staticmethod
+    def none(frame_id: int, capture_time_s: float, reason: str, timings_s: Optional[dict] = None) -> "Target":
+        """No target for this frame, and why."""
+        return Target(frame_id, capture_time_s, False, reason, timings_s=dict(timings_s or {}))
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Telemetry matched to a frame's capture time (DESIGN.md §3: matched to capture, not to inference end).
+
+    ``attitude``: body FRD relative to local NED (radians). ``position_ned_m``: vehicle local NED position
+    (metres) or None. ``agl_m``: height above ground (rangefinder, or relative altitude over flat terrain) or
+    None; ``agl_source`` says which.
+    """
+
+    time_s: float
+    attitude: Attitude = Attitude()
+    position_ned_m: Optional[np.ndarray] = None
+    agl_m: Optional[float] = None
+    agl_source: str = ""

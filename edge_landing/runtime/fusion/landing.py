@@ -1,0 +1,79 @@
+"""Choosing the landing spot on the fused grid (DESIGN.md §6 step 6).
+
+Candidates are cells whose clearance reaches the vehicle radius plus the margin. Score (metres) =
+min(clearance, saturation) - travel_penalty_per_m × horizontal distance from the vehicle, so beyond the
+saturation a wider clear area no longer beats a nearer one. The spot kept from earlier frames stays while
+it is still a candidate and the best new score does not beat it by more than ``hysteresis_m``: the
+target does not jump between near-equal spots from frame to frame.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import numpy as np
+
+from edge_landing.runtime.fusion.grid import GridView
+
+
+@dataclass(frozen=True)
+class KeptSpot:
+    """The previous target, in the grid's frame (metres) and its capture time."""
+
+    north_m: float
+    east_m: float
+    time_s: float
+
+
+@dataclass(frozen=True)
+class Choice:
+    """The chosen spot, in the grid's frame: position, clearance, score and the evidence of its cell."""
+
+    north_m: float
+    east_m: float
+    down_m: float
+    clearance_m: float
+    score: float
+    horizontal_share: float
+    flat_share: float
+    kept: bool
+
+
+def _score(clearance_m, travel_m, config):
+    return np.minimum(clearance_m, config.clearance_saturation_m) - config.travel_penalty_per_m * travel_m
+
+
+def choose_spot(view: GridView, here_ne: Tuple[float, float], config, kept: Optional[KeptSpot] = None
+                ) -> Optional[Choice]:
+    """Best spot on ``view`` for a vehicle at ``here_ne`` (north, east in the grid's frame), or None.
+
+    ``config`` is a FusionConfig (required_clearance_m, clearance_saturation_m, travel_penalty_per_m,
+    hysteresis_m are used).
+    """
+    need = config.required_clearance_m
+    clearance = view.clearance_m
+    flat_idx = np.flatnonzero(clearance.ravel() >= need - 1e-6)
+    if flat_idx.size == 0:
+        return None
+    cols = view.shape[1]
+    rows_i, cols_i = np.divmod(flat_idx, cols)
+    north = view.north0_m + (rows_i + 0.5) * view.cell_m
+    east = view.east0_m + (cols_i + 0.5) * view.cell_m
+    travel = np.hypot(north - here_ne[0], east - here_ne[1])
+    scores = _score(clearance.ravel()[flat_idx], travel, config)
+    best = int(np.argmax(scores))
+    r, c = int(rows_i[best]), int(cols_i[best])
+    pick = (float(north[best]), float(east[best]), float(scores[best]), False)
+
+    if kept is not None:
+        cell = view.cell_of(kept.north_m, kept.east_m)
+        if cell is not None and clearance[cell] >= need - 1e-6:
+            kept_travel = math.hypot(kept.north_m - here_ne[0], kept.east_m - here_ne[1])
+            kept_score = float(_score(clearance[cell], kept_travel, config))
+            if kept_score + config.hysteresis_m >= pick[2]:
+                r, c = cell
+                pick = (kept.north_m, kept.east_m, kept_score, True)
+    down_m, horizontal_share, flat_share = view.cell_stats(r, c)
+    return Choice(north_m=pick[0], east_m=pick[1], down_m=down_m, clearance_m=float(clearance[r, c]),
+                  score=pick[2], horizontal_share=horizontal_share, flat_share=flat_share, kept=pick[3])

@@ -1,0 +1,387 @@
+"""Frame sources and the grabber thread (DESIGN.md §3: every frame has an id and a monotonic capture time).
+
+A *reader* opens one kind of input and returns RGB uint8 images one by one (``None`` at the end).
+The :class:`Grabber` runs a reader in its own thread. Live sources (a V4L2 camera, an RTSP/GStreamer stream,
+the synthetic camera) keep only the newest frame and count the ones the pipeline never saw; recorded ones
+(a video file, an image folder) hand over every frame, so a file run is repeatable. Example::
+
+    grabber = Grabber(SourceConfig.from_string("flight.mp4"))
+    grabber.start()                       # opening problems raise one clear InputError here
+    while (frame := grabber.next(timeout_s=1.0)) is not None or not grabber.ended:
+        ...
+    grabber.stop()
+"""
+from __future__ import annotations
+
+import glob
+import logging
+import os
+import threading
+import time
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+from typing import Callable, List, Optional
+
+import numpy as np
+
+from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.messages import Frame, VehicleState
+
+log = logging.getLogger(__name__)
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
+STREAM_PREFIXES = ("rtsp://", "rtsps://", "http://", "https://", "udp://", "tcp://", "rtmp://")
+
+
+class SourceKind(str, Enum):
+    DEVICE = "device"
+    FILE = "file"
+    FOLDER = "folder"
+    STREAM = "stream"
+    SIM = "sim"
+
+    @property
+    def live(self) -> bool:
+        """Live sources run at their own pace, so the grabber drops what the pipeline cannot take."""
+        return self in (SourceKind.DEVICE, SourceKind.STREAM, SourceKind.SIM)
+
+    @classmethod
+    def from_string(cls, camera: str) -> "SourceKind":
+        """Guess the kind from what the user typed for ``--camera``."""
+        if camera == "sim" or camera.startswith("sim:"):
+            return cls.SIM
+        if camera.isdigit() or camera.startswith("/dev/video"):
+            return cls.DEVICE
+        if camera.startswith(STREAM_PREFIXES) or "!" in camera:
+            return cls.STREAM
+        if any(ch in camera for ch in "*?[") or Path(camera).is_dir():
+            return cls.FOLDER
+        return cls.FILE
+
+
+@dataclass(frozen=True)
+class SourceConfig:
+    """Where frames come from and how to treat faults. width/height/fps = 0 leave the camera's defaults."""
+
+    camera: str
+    kind: SourceKind
+    width: int = 0
+    height: int = 0
+    fps: float = 0.0
+    loop: bool = False
+    poses_csv: str = ""  # replay a recorded flight's poses.csv as telemetry, one row per frame
+    reopen_min_s: float = 0.5
+    reopen_max_s: float = 5.0
+
+    @staticmethod
+    def from_string(camera: str, **kwargs) -> "SourceConfig":
+        return SourceConfig(camera=camera, kind=SourceKind.from_string(camera), **kwargs)
+
+
+class Reader:
+    """One opened input. ``read`` returns RGB uint8 H×W×3, or None at the end of a recorded input;
+    it raises OSError when a live device fails (the grabber then reopens it)."""
+
+    name = ""
+
+    def read(self) -> Optional[np.ndarray]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+class VideoReader(Reader):
+    """cv2.VideoCapture over a V4L2 device, a video file or a stream URL."""
+
+    def __init__(self, config: SourceConfig):
+        import cv2
+
+        self.config = config
+        self.name = config.camera
+        self._expected_frames = 0
+        self._read = 0
+        target = config.camera
+        if config.kind is SourceKind.DEVICE:
+            target = int(config.camera) if config.camera.isdigit() else config.camera
+            node = f"/dev/video{target}" if isinstance(target, int) else target
+            if os.path.isdir("/dev") and not os.path.exists(node):
+                raise InputError(f"camera {node} not found (no such device); expected a V4L2 device such as "
+                                 f"/dev/video0 or an index; present: {sorted(glob.glob('/dev/video*')) or 'none'}")
+            self.cap = cv2.VideoCapture(target, cv2.CAP_V4L2)
+            self.cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the driver's queue would add latency; we want the newest
+            if config.width and config.height:
+                self.cap.set(cv2.CAP_PROP_FRAME_WIDTH, config.width)
+                self.cap.set(cv2.CAP_PROP_FRAME_HEIGHT, config.height)
+            if config.fps:
+                self.cap.set(cv2.CAP_PROP_FPS, config.fps)
+        elif config.kind is SourceKind.FILE:
+            if not Path(target).is_file():
+                raise InputError(f"video file {target} does not exist; expected a video (mp4, avi, ...), an image "
+                                 f"folder or glob, a /dev/video device, an rtsp:// URL or 'sim'")
+            self.cap = cv2.VideoCapture(target)
+            self._expected_frames = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        else:
+            api = cv2.CAP_GSTREAMER if "!" in target else cv2.CAP_FFMPEG
+            self.cap = cv2.VideoCapture(target, api)
+        if not self.cap.isOpened():
+            what = {SourceKind.DEVICE: "camera device", SourceKind.FILE: "video file",
+                    SourceKind.STREAM: "stream"}[config.kind]
+            hint = " (truncated or corrupt, or a codec OpenCV cannot read)" if config.kind is SourceKind.FILE else ""
+            raise InputError(f"cannot open {what} {target}{hint}")
+
+    def read(self) -> Optional[np.ndarray]:
+        import cv2
+
+        ok, bgr = self.cap.read()
+        if not ok or bgr is None:
+            if self.config.kind is SourceKind.FILE:
+                if self._expected_frames and self._read < self._expected_frames - 1:
+                    log.warning("video %s ended early after %d of %d frames (truncated or corrupt); stopping cleanly",
+                                self.name, self._read, self._expected_frames)
+                return None
+            raise OSError(f"{self.name}: no frame from the camera")
+        self._read += 1
+        if bgr.ndim == 2:
+            return cv2.cvtColor(bgr, cv2.COLOR_GRAY2RGB)
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+class ImageFolderReader(Reader):
+    """Every image of a folder (sorted) or a glob; an unreadable image is skipped with a warning."""
+
+    def __init__(self, config: SourceConfig):
+        pattern = config.camera
+        if Path(pattern).is_dir():
+            paths = sorted(p for p in Path(pattern).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        else:
+            paths = sorted(Path(p) for p in glob.glob(pattern) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
+        if not paths:
+            raise InputError(f"no images found at {pattern}; expected a folder or glob of "
+                             f"{'/'.join(s[1:] for s in IMAGE_SUFFIXES)} files")
+        self.name = pattern
+        self.paths: List[Path] = paths
+        self._next = 0
+
+    def read(self) -> Optional[np.ndarray]:
+        import cv2
+
+        while self._next < len(self.paths):
+            path = self.paths[self._next]
+            self._next += 1
+            bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if bgr is not None:
+                return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            log.warning("skipping %s: not a readable image (corrupt or not an image)", path)
+        return None
+
+
+class SimReader(Reader):
+    """The synthetic camera of the ``sim`` package (the ``[sim]`` extra), imported only when asked for.
+
+    ``--camera sim[:STYLE][:SEED]``, e.g. ``sim``, ``sim:urban``, ``sim:urban:3``. It flies one landing approach
+    (approach, hover, descent; ``FLIGHT_FRAMES`` frames) in real time at ``fps`` (default 10) and then ends, or
+    repeats it with ``--loop``. Like a camera with perfect telemetry, it gives the vehicle state of each frame
+    (``last_state``), which the grabber feeds to the telemetry buffer at the capture time.
+    """
+
+    FLIGHT_FRAMES = 200
+
+    DEFAULT_SIZE = (160, 120)  # renders at about 15 frames/s on one busy core
+
+    def __init__(self, config: SourceConfig):
+        from edge_landing.runtime.core.errors import require_extra
+
+        sim = require_extra("sim", "sim")
+        style, seed = "suburban", 0
+        for part in config.camera.split(":")[1:]:
+            if part.isdigit():
+                seed = int(part)
+            elif part:
+                style = part
+        width, height = (config.width, config.height) if config.width and config.height else self.DEFAULT_SIZE
+        log.info("building the synthetic %s world (seed %d) for the sim camera...", style, seed)
+        self.camera = sim.SimCamera(style=style, seed=seed, width=width, height=height, fps=config.fps or 10.0,
+                                    flight_frames=self.FLIGHT_FRAMES, realtime=True)
+        self._frames_left = None if config.loop else self.FLIGHT_FRAMES
+        self.name = f"sim:{style}:{seed}"
+        self.intrinsics = self.camera.intrinsics
+        self.mount = self.camera.mount
+        self.last_state = None
+
+    def read(self) -> Optional[np.ndarray]:
+        if self._frames_left is not None:
+            if self._frames_left <= 0:
+                return None  # the flight is over: end the run cleanly
+            self._frames_left -= 1
+        rgb, _pose, self.last_state = self.camera.read()
+        return rgb
+
+    def close(self) -> None:
+        self.camera.close()
+
+
+class PoseReplayReader(Reader):
+    """A recorded input replayed with its ground-truth poses (an ``edge-sim --flight`` poses.csv) as telemetry.
+
+    Row k of the file describes frame k of the input; ``last_state`` is that frame's vehicle state, which the
+    grabber stamps with the frame's capture time. Frames past the end of the file get no state.
+    """
+
+    def __init__(self, inner: Reader, states: List[VehicleState]):
+        self.inner, self.states = inner, states
+        self.name = inner.name
+        self.last_state: Optional[VehicleState] = None
+        self._index = 0
+
+    @staticmethod
+    def states_from_csv(path: str) -> List[VehicleState]:
+        from edge_landing.runtime.core.camera import Attitude
+        from edge_landing.runtime.io.poses import read_poses_csv
+
+        return [VehicleState(time_s=p.t_s, attitude=Attitude(p.roll_rad, p.pitch_rad, p.yaw_rad),
+                             position_ned_m=np.asarray(p.ned_m, dtype=np.float64), agl_m=p.agl_m,
+                             agl_source="poses.csv") for p in read_poses_csv(path)]
+
+    def read(self) -> Optional[np.ndarray]:
+        rgb = self.inner.read()
+        if rgb is not None:
+            self.last_state = self.states[self._index] if self._index < len(self.states) else None
+            self._index += 1
+        return rgb
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def open_reader(config: SourceConfig) -> Reader:
+    if config.kind is SourceKind.FOLDER:
+        reader: Reader = ImageFolderReader(config)
+    elif config.kind is SourceKind.SIM:
+        return SimReader(config)
+    else:
+        reader = VideoReader(config)
+    if config.poses_csv:
+        try:
+            return PoseReplayReader(reader, PoseReplayReader.states_from_csv(config.poses_csv))
+        except Exception:
+            reader.close()
+            raise
+    return reader
+
+
+class Grabber:
+    """Reads frames in a thread; live sources keep only the newest frame and count drops.
+
+    ``opener`` turns the config into a :class:`Reader` (default :func:`open_reader`); it is called again to
+    reopen a failed live source.
+    """
+
+    def __init__(self, config: SourceConfig, opener: Callable[[SourceConfig], Reader] = None, telemetry=None):
+        self.config = config
+        self.opener = opener or open_reader
+        self.telemetry = telemetry  # a TelemetryBuffer fed with the states of a simulated source
+        self.reader: Optional[Reader] = None
+        self.drops = 0
+        self.grabbed = 0
+        self.faults = 0
+        self.ended = False
+        self._slot: Optional[Frame] = None
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._next_id = 0
+
+    def start(self) -> "Grabber":
+        """Open the input now (so a missing camera is one clear error) and start the thread."""
+        self.reader = self.opener(self.config)
+        self._thread = threading.Thread(target=self._run, name="grabber", daemon=True)
+        self._thread.start()
+        return self
+
+    def next(self, timeout_s: float = 1.0) -> Optional[Frame]:
+        """The newest frame not yet taken, or None after ``timeout_s`` or at the end."""
+        with self._cond:
+            if self._slot is None and not self.ended:
+                self._cond.wait(timeout_s)
+            frame, self._slot = self._slot, None
+            self._cond.notify_all()
+            return frame
+
+    def stop(self) -> None:
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=3.0)
+        if self.reader is not None:
+            self.reader.close()
+
+    # -- the thread -----------------------------------------------------------------------------------
+    def _run(self) -> None:
+        backoff_s = self.config.reopen_min_s
+        while not self._stop.is_set():
+            if self.reader is None:
+                if not self._reopen(backoff_s):
+                    if not self.config.kind.live:
+                        break  # a recorded input that vanished while looping: end cleanly
+                    backoff_s = min(backoff_s * 2.0, self.config.reopen_max_s)
+                    continue
+                backoff_s = self.config.reopen_min_s
+            try:
+                rgb = self.reader.read()
+            except Exception as exc:  # a mid-run camera fault never stops the loop: reopen with back-off
+                self.faults += 1
+                log.warning("camera %s failed (%s); reopening with back-off", self.config.camera, exc)
+                self.reader.close()
+                self.reader = None
+                continue
+            if rgb is None:
+                if self.config.loop and not self.config.kind.live:
+                    self.reader.close()
+                    self.reader = None
+                    continue
+                break
+            if not self.config.kind.live:
+                # Recorded input has no real capture time: stamp it when the pipeline can take it, so a slow
+                # model does not make every played-back frame "stale".
+                self._wait_for_free_slot()
+            frame = Frame(self._next_id, time.monotonic(), rgb, self.config.camera)
+            state = getattr(self.reader, "last_state", None)
+            if state is not None and self.telemetry is not None:
+                self.telemetry.add_state(state, frame.capture_time_s)
+            self._publish(frame)
+            self._next_id += 1
+        with self._cond:
+            self.ended = True
+            self._cond.notify_all()
+
+    def _reopen(self, backoff_s: float) -> bool:
+        if self._stop.wait(backoff_s if self.config.kind.live else 0.0):
+            return False
+        try:
+            self.reader = self.opener(self.config)
+        except (InputError, OSError) as exc:
+            log.debug("reopen of %s failed: %s", self.config.camera, exc)
+            return False
+        if self.config.kind.live:
+            log.warning("camera %s is back", self.config.camera)
+        return True
+
+    def _wait_for_free_slot(self) -> None:
+        """Recorded input: wait for the pipeline, so that every frame is processed."""
+        with self._cond:
+            while self._slot is not None and not self._stop.is_set():
+                self._cond.wait(0.1)
+
+    def _publish(self, frame: Frame) -> None:
+        with self._cond:
+            if self.config.kind.live:
+                if self._slot is not None:
+                    self.drops += 1
+            self._slot = frame
+            self.grabbed += 1
+            self._cond.notify_all()
