@@ -113,7 +113,7 @@ def target_ned(target, position, attitude: Attitude = Attitude()) -> np.ndarray:
     return np.asarray(position, float) + attitude.ned_from_body() @ target.position_body_frd_m
 
 
-def check_target_on_gt(target, render: "Render", where: str, config=None) -> None:
+def check_target_on_gt(target, render: Render, where: str, config=None) -> None:
     """The requested clearance strictly; the reported clearance less one working pixel's footprint.
 
     Fusion sees the scene at the working size: a thing narrower than one working pixel (a roof unit seen

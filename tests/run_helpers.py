@@ -110,7 +110,7 @@ class LoopbackAutopilot:
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._t0 = time.monotonic()
 
-    def __enter__(self) -> "LoopbackAutopilot":
+    def __enter__(self) -> LoopbackAutopilot:
         self._thread.start()
         return self
 

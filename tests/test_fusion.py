@@ -1,4 +1,4 @@
-"""Fusion (DESIGN.md §6) on analytic scenes rendered by exact ray casting (tests/fusion_scenes.py)."""
+"""Fusion (ARCHITECTURE.md §6) on analytic scenes rendered by exact ray casting (tests/fusion_scenes.py)."""
 from __future__ import annotations
 
 import math

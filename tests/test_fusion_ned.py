@@ -1,4 +1,4 @@
-"""Fusion's NED grid across frames (DESIGN.md §6 step 6) with network-like depth: per-frame scale errors.
+"""Fusion's NED grid across frames (ARCHITECTURE.md §6 step 6) with network-like depth: per-frame scale errors.
 
 The shipped model's depth scale wanders by ~1 % from frame to frame, i.e. 0.5-1 m of height at 40-80 m,
 while a cell may spread 0.1 m. The NED grid therefore accumulates per-frame verdicts, never raw heights.
@@ -67,7 +67,7 @@ def test_ned_grid_obstacle_outvotes_older_clear_views():
     pole = Box((n - 0.5, e - 0.5, -12.0), (n + 0.5, e + 0.5, 0.0))
     with_pole = Scene(boxes=(pole,)).render(INTR, MOUNT, att, pos)
     frames_needed = math.ceil(CFG.decay_s * math.log(1.0 / CFG.min_vote_share) * FPS) + 1
-    for k in range(1, frames_needed + 1):
+    for _k in range(1, frames_needed + 1):
         i += 1
         target = fuser.update(_scaled(with_pole, i, i / FPS, 1.0), state_at(i / FPS, pos, att), now_s=i / FPS)
     assert target.valid, target.reason

@@ -184,7 +184,8 @@ def test_telemetry_interpolation_yaw_wrap_window_and_clock_offset():
     # Autopilot clock starts at 100 s; arrivals are 1000 s + remote - 100 plus jitter (min latency 2 ms).
     for i, jitter in zip(range(5), (0.002, 0.010, 0.002, 0.030, 0.002)):
         remote_ms = 100_000 + i * 100
-        buf.add_attitude(0.0, 0.1 * i, math.remainder(math.pi - 0.05 + 0.025 * i, 2 * math.pi), remote_ms, arrival_s=1000.0 + i * 0.1 + jitter)
+        yaw = math.remainder(math.pi - 0.05 + 0.025 * i, 2 * math.pi)
+        buf.add_attitude(0.0, 0.1 * i, yaw, remote_ms, arrival_s=1000.0 + i * 0.1 + jitter)
         buf.add_position(float(i), 0.0, -10.0, remote_ms, arrival_s=1000.0 + i * 0.1 + jitter)
     s = buf.state_at(1000.002 + 0.15)                # halfway between samples 1 and 2
     assert s.attitude.pitch_rad == pytest.approx(0.15, abs=1e-6)

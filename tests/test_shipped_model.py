@@ -71,7 +71,7 @@ def unseen_scenes(tmp_path_factory):
 
 
 def score(model: OnnxModel, scene: Scene) -> dict:
-    """Horizontal precision (global counts) and δ1 after one per-scene median scale (DESIGN.md §7)."""
+    """Horizontal precision (global counts) and δ1 after one per-scene median scale (ARCHITECTURE.md §7)."""
     preds, gts, hvo = [], [], HvoAccumulator()
     for fid in scene.frame_ids:
         gt = scene.read_depth(fid)

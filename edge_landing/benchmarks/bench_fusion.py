@@ -1,4 +1,4 @@
-"""Fusion speed: per-frame latency of LandingFuser.update on an analytic scene (DESIGN.md §6, §9).
+"""Fusion speed: per-frame latency of LandingFuser.update on an analytic scene (ARCHITECTURE.md §6, §9).
 
     python -m benchmarks.bench_fusion --frames 300 --altitude 40 --mode ned
 

@@ -1,4 +1,4 @@
-"""Whole-pipeline throughput vs model-only throughput, same run, 2 threads (DESIGN.md §9; goal: pipeline >= 90 %).
+"""Whole-pipeline throughput vs model-only throughput, same run, 2 threads (ARCHITECTURE.md §9; goal: pipeline >= 90 %).
 
 The frames are read (or rendered by the simulator) into memory first, so neither camera nor renderer is
 timed. Each round runs, in rotating order, (a) the model alone over every frame, (b) the full pipeline

@@ -35,7 +35,7 @@ class SceneSpec:
     seed: int
 
     @classmethod
-    def parse(cls, text: str) -> "SceneSpec":
+    def parse(cls, text: str) -> SceneSpec:
         style, _, seed = text.partition(":")
         if style not in ("suburban", "urban") or not seed.isdigit():
             raise SystemExit(f"check_shipped: scene '{text}' is not STYLE:SEED (style suburban or urban)")

@@ -1,4 +1,4 @@
-"""edge-bench: a Table 1-style speed report of the zoo on this CPU (DESIGN.md §9).
+"""edge-bench: a Table 1-style speed report of the zoo on this CPU (ARCHITECTURE.md §9).
 
     edge-bench                                   # default set (no AdaBins), paper input sizes, 2 threads
     edge-bench --models safeuav-small,adabins-80 --out bench/

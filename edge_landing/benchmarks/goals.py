@@ -1,4 +1,4 @@
-"""The project's speed goals, checked against a finished report (issues 5 and 7; DESIGN.md §9).
+"""The project's speed goals, checked against a finished report (issues 5 and 7; ARCHITECTURE.md §9).
 
 Each check says whether the goal was met and, when not, by how much and where the time goes (the top
 kernels of the profile when ``edge-bench --profile`` recorded one).

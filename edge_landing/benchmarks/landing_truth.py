@@ -3,7 +3,7 @@
 For every target in a ``--log targets.jsonl`` of ``edge-run --camera sim[:STYLE][:SEED]``, vertical rays are
 cast over the disc of the requested clearance radius around the target's local NED position. The target
 counts as safe when every ray hits a horizontal surface (normal within ``horizontal_max_deg`` of up,
-DESIGN.md §4) and all hits lie within ``max_step_m`` of each other in height (no kerb, car or wall inside).
+ARCHITECTURE.md §4) and all hits lie within ``max_step_m`` of each other in height (no kerb, car or wall inside).
 
     edge-run --log /tmp/t.jsonl && python -m benchmarks.landing_truth /tmp/t.jsonl --clearance 2.0
 """

@@ -50,7 +50,7 @@ class BenchRow:
         t = self.timings.get(kind)
         return t["images_per_s"] if t else None
 
-    def finish(self, peak_gflops: Optional[float] = None) -> "BenchRow":
+    def finish(self, peak_gflops: Optional[float] = None) -> BenchRow:
         """Derived columns: INT8 ratios from the same interleaved run, achieved GFLOP/s and its share of
         ``peak_gflops`` (the best matmul throughput seen in the whole session)."""
         fp32, int8, torch = self.ips("ort-fp32"), self.ips("ort-int8"), self.ips("torch")

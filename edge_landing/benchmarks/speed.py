@@ -1,4 +1,4 @@
-"""Interleaved latency measurement of several backends of one model (DESIGN.md §9).
+"""Interleaved latency measurement of several backends of one model (ARCHITECTURE.md §9).
 
 Every iteration runs each backend once, round-robin, with the starting backend rotating, so all of them see
 the same machine load and their ratios come from one run even on a noisy shared machine. Example::

@@ -1,4 +1,4 @@
-"""Per-scene median-scale calibration (DESIGN.md §7), the engine behind ``edge-calibrate``.
+"""Per-scene median-scale calibration (ARCHITECTURE.md §7), the engine behind ``edge-calibrate``.
 
 For every frame with ground truth, ratio = median(gt) / median(pred) over valid pixels (Monodepth2's median
 scaling); the scene's scale is the median of the ratios, with its spread (MAD, min, max, frames used)::
@@ -58,7 +58,7 @@ def calibrate_scene(scene: Scene, model: OnnxModel, config: CalibrationConfig = 
         gt = scene.read_depth(fid)
         if gt.shape != rgb.shape[:2]:
             raise SceneError(f"frame {fid}: depth is {gt.shape[0]}x{gt.shape[1]} but the rgb image is "
-                             f"{rgb.shape[0]}x{rgb.shape[1]}; expected the same size (DESIGN.md §4)")
+                             f"{rgb.shape[0]}x{rgb.shape[1]}; expected the same size (ARCHITECTURE.md §4)")
         pred = model.predict(rgb, frame_id=index, out_hw=gt.shape)
         if not pred.valid:
             log.warning("frame %s: model output invalid (%s); frame skipped", fid, pred.reason)

@@ -1,4 +1,4 @@
-"""The one-line CLI convention shared by every ``edge-*`` command (DESIGN.md §10).
+"""The one-line CLI convention shared by every ``edge-*`` command (ARCHITECTURE.md §10).
 
 :func:`run_cli` runs a command body and turns an :class:`EdgeError` into one line on stderr and exit 2.
 """

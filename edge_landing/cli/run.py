@@ -1,4 +1,4 @@
-"""``edge-run``: camera -> depth + HVO -> landing target -> MAVLink, on the drone (DESIGN.md §1, §6, §8).
+"""``edge-run``: camera -> depth + HVO -> landing target -> MAVLink, on the drone (ARCHITECTURE.md §1, §6, §8).
 
     edge-run                                        # the built-in synthetic flight, shipped model, prints targets
     edge-run --camera /dev/video0 --mav udpout:127.0.0.1:14550 --autopilot ardupilot

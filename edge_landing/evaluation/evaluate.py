@@ -166,7 +166,7 @@ def evaluate_scene(models: Sequence[OnnxModel], scene: Scene, config: EvalConfig
         for name, gt in (("depth", gt_depth), ("hvo", gt_hvo)):
             if gt is not None and gt.shape != hw:
                 raise SceneError(f"frame {fid}: {name} ground truth is {gt.shape[0]}x{gt.shape[1]} but the rgb "
-                                 f"image is {hw[0]}x{hw[1]}; expected the same size (DESIGN.md §4)")
+                                 f"image is {hw[0]}x{hw[1]}; expected the same size (ARCHITECTURE.md §4)")
         for model, score in zip(models, scores):
             if score.do_depth or score.do_hvo:
                 score.add(fid, gt_depth, gt_hvo, model.predict(rgb, frame_id=index, out_hw=hw))

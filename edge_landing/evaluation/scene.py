@@ -1,4 +1,4 @@
-"""Scene folders (DESIGN.md §4): reading and writing frames with their ground truth.
+"""Scene folders (ARCHITECTURE.md §4): reading and writing frames with their ground truth.
 
 ```
 scene/
@@ -57,7 +57,7 @@ class SceneMeta:
         }
 
     @staticmethod
-    def from_json(d: dict) -> "SceneMeta":
+    def from_json(d: dict) -> SceneMeta:
         mount = d.get("mount", {})
         return SceneMeta(
             intrinsics=Intrinsics.from_json(d["camera"]),
@@ -97,7 +97,7 @@ class Scene:
         try:
             return SceneMeta.from_json(json.loads(meta_path.read_text()))
         except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-            raise SceneError(f"{meta_path} is malformed ({exc!r}); expected the scene.json of DESIGN.md §4") from None
+            raise SceneError(f"{meta_path} is malformed ({exc!r}); expected the scene.json of ARCHITECTURE.md §4") from None
 
     @property
     def has_depth(self) -> bool:

@@ -33,7 +33,7 @@ class AugmentConfig:
     noise_std_max: float = 0.03     # in [0, 1] intensity units
 
     @staticmethod
-    def none() -> "AugmentConfig":
+    def none() -> AugmentConfig:
         return AugmentConfig(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 

@@ -1,4 +1,4 @@
-"""Scene folders (DESIGN.md §4) as in-memory training sets.
+"""Scene folders (ARCHITECTURE.md §4) as in-memory training sets.
 
 The synthetic scenes are small (a few hundred 240×320 frames), so every frame is decoded once, resized to
 the training size and kept as uint8/float32 arrays; batches are then cheap tensor slices, with no worker

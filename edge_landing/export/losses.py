@@ -47,7 +47,7 @@ class DepthLossSpace:
     max_depth: float
 
     @staticmethod
-    def from_spec(spec: DepthSpec) -> "DepthLossSpace":
+    def from_spec(spec: DepthSpec) -> DepthLossSpace:
         return DepthLossSpace(spec.convention, spec.min_depth, spec.max_depth)
 
     @property

@@ -1,4 +1,4 @@
-"""PyTorch -> one self-describing ONNX file (DESIGN.md §5), verified against PyTorch before it is written.
+"""PyTorch -> one self-describing ONNX file (ARCHITECTURE.md §5), verified against PyTorch before it is written.
 
     from edge_landing.export.zoo import get_arch
     from edge_landing.export.onnx_export import export_onnx
@@ -36,7 +36,7 @@ from .checkpoints import trusted_checkpoints
 from .zoo.registry import ArchSpec
 
 log = logging.getLogger(__name__)
-MAX_OPSET = 20   # ONNX Runtime's static quantizer does not take newer opsets (DESIGN.md §9)
+MAX_OPSET = 20   # ONNX Runtime's static quantizer does not take newer opsets (ARCHITECTURE.md §9)
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Static INT8 quantization with an accuracy guard (DESIGN.md §9).
+"""Static INT8 quantization with an accuracy guard (ARCHITECTURE.md §9).
 
 ONNX Runtime's static QDQ quantizer with the settings that pay off on an x86 CPU without VNNI: uint8
 activations, int8 weights, per-channel with ``reduce_range``, ``quant_pre_process`` first. Calibration
@@ -308,7 +308,7 @@ def _write_metadata(path: Path, fp32: OnnxModel, settings: dict) -> None:
     onnx.save(model, str(path))
 
 
-def quantize(input: os.PathLike | str, output: os.PathLike | str, config: QuantizeConfig) -> QuantReport:
+def quantize(input: os.PathLike | str, output: os.PathLike | str, config: QuantizeConfig) -> QuantReport:  # noqa: A002
     """Quantize ``input`` to ``output`` and check it on held-out frames.
 
     Returns the report; the INT8 file is written only when it passes the tolerance or ``config.force``

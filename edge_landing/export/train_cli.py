@@ -72,7 +72,8 @@ def config_from_args(args: argparse.Namespace):
             raise InputError(f"--net-width applies to edgenet only, not {args.arch}")
         options = (("channels", int(args.net_width)),)
     return TrainConfig(
-        arch=args.arch, task=args.task, train_scenes=tuple(str(s) for s in args.train), val_scenes=tuple(str(s) for s in args.val),
+        arch=args.arch, task=args.task, train_scenes=tuple(str(s) for s in args.train),
+        val_scenes=tuple(str(s) for s in args.val),
         out_dir=str(args.out), epochs=args.epochs, batch=args.batch, lr=args.lr, weight_decay=args.weight_decay,
         height=args.height, width=args.width, export_height=args.export_height, export_width=args.export_width,
         options=options, resume=args.resume, init=args.init, threads=args.threads, device=args.device,

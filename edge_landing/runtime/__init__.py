@@ -1,6 +1,6 @@
 """The drone-side runtime: model contract, camera geometry, inference, fusion, MAVLink, streaming.
 
-No torch here (DESIGN.md §2). Importing this package has no side effects.
+No torch here (ARCHITECTURE.md §2). Importing this package has no side effects.
 
     from edge_landing.runtime import OnnxModel
     model = OnnxModel.load("model.onnx", threads=2)

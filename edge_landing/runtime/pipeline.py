@@ -211,7 +211,7 @@ class Pipeline:
         self._had_target: Optional[bool] = None
         self._candidate: Optional[bool] = None
         self._candidate_frames = 0
-        self._queue: "queue.Queue" = queue.Queue(maxsize=1)
+        self._queue: queue.Queue = queue.Queue(maxsize=1)
         self._worker: Optional[threading.Thread] = None
 
     def stop(self, why: str = "request") -> None:

@@ -1,4 +1,4 @@
-"""edge-sim: a synthetic AirSimNC-style bird's-eye-view benchmark generator (DESIGN.md §1, §3–4).
+"""edge-sim: a synthetic AirSimNC-style bird's-eye-view benchmark generator (ARCHITECTURE.md §1, §3–4).
 
 Procedural, seeded worlds (``suburban``: gabled/hipped houses, lawns, trees, roads, driveways, parked cars on
 gentle terrain; ``urban``: flat-roofed blocks of many heights, streets, plazas, roof clutter) are ray cast

@@ -1,4 +1,4 @@
-"""Scene generation: render N frames (random views or one landing flight) into a scene folder (DESIGN.md §4).
+"""Scene generation: render N frames (random views or one landing flight) into a scene folder (ARCHITECTURE.md §4).
 
 Every random draw comes from generators seeded by (seed, frame, purpose), so the same configuration gives
 byte-identical files, and frame k does not depend on how many frames come before it.

@@ -22,11 +22,11 @@ class Part:
     tint: np.ndarray
 
     @staticmethod
-    def empty() -> "Part":
+    def empty() -> Part:
         return Part(np.zeros((0, 3, 3)), np.zeros(0, np.uint8), np.zeros((0, 3), np.float32))
 
     @staticmethod
-    def concat(parts: Sequence["Part"]) -> "Part":
+    def concat(parts: Sequence[Part]) -> Part:
         parts = [p for p in parts if len(p.tris)]
         if not parts:
             return Part.empty()

@@ -1,4 +1,4 @@
-"""EdgeNet: the project's joint depth + HVO network, sized for 2 CPU cores (DESIGN.md §1, §9).
+"""EdgeNet: the project's joint depth + HVO network, sized for 2 CPU cores (ARCHITECTURE.md §1, §9).
 
 One shared encoder (stride-2 stem, four stride-2 stages of plain 3×3 conv + BatchNorm + ReLU, dilated
 context at 1/16), one shared U-Net decoder (bilinear ×2 upsample + concat skip + 3×3 conv) back to 1/2
@@ -204,7 +204,7 @@ def _input_channel_map(name: str, old: Tuple[int, ...], new: Tuple[int, ...], ol
     return torch.arange(old_in)
 
 
-def widen_state_dict(narrow: dict, model: "EdgeNet") -> dict:
+def widen_state_dict(narrow: dict, model: EdgeNet) -> dict:
     """A narrower EdgeNet's weights placed inside ``model`` so that the wide model computes the same outputs.
 
     Old channels keep their weights; each new channel keeps its random incoming weights (so it is active and

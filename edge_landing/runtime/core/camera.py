@@ -1,4 +1,4 @@
-"""Camera model and frames (DESIGN.md §3).
+"""Camera model and frames (ARCHITECTURE.md §3).
 
 Camera frame: OpenCV, x right, y down, z forward (optical axis). Body frame: FRD. World: local NED.
 The mount is the rotation body <- camera given by the camera's Tait-Bryan angles relative to the body
@@ -40,7 +40,7 @@ class Intrinsics:
                              f"fx={self.fx}, fy={self.fy}")
 
     @staticmethod
-    def from_hfov(width: int, height: int, hfov_rad: float = DEFAULT_HFOV_RAD) -> "Intrinsics":
+    def from_hfov(width: int, height: int, hfov_rad: float = DEFAULT_HFOV_RAD) -> Intrinsics:
         """Square pixels, principal point at the image centre (AirSim's camera model)."""
         if not 0 < hfov_rad < math.pi:
             raise InputError(f"horizontal field of view must be in (0, 180) degrees, got {math.degrees(hfov_rad):.1f}")
@@ -55,7 +55,7 @@ class Intrinsics:
     def hfov_rad(self) -> float:
         return 2.0 * math.atan(self.width / (2.0 * self.fx))
 
-    def scaled(self, width: int, height: int) -> "Intrinsics":
+    def scaled(self, width: int, height: int) -> Intrinsics:
         """The same camera at another image size (pixel-edge convention: u' = u * sx)."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, self.dist)
@@ -64,7 +64,8 @@ class Intrinsics:
         """H×W×3 float32 array of K⁻¹[u+0.5, v+0.5, 1] (z = 1) for every pixel centre.
 
         With distortion coefficients the pixel centres are undistorted first (OpenCV's model), so every ray
-        is the true direction that pixel sees. Cached per intrinsics (the per-frame stages ask for the same table every frame); read-only.
+        is the true direction that pixel sees. Cached per intrinsics (the per-frame stages ask for the same
+        table every frame); read-only.
         """
         return _pixel_rays(self)
 
@@ -91,7 +92,7 @@ class Intrinsics:
                 "cx": self.cx, "cy": self.cy, "dist": list(self.dist)}
 
     @staticmethod
-    def from_json(d: dict) -> "Intrinsics":
+    def from_json(d: dict) -> Intrinsics:
         return Intrinsics(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
                           float(d["cx"]), float(d["cy"]), tuple(float(v) for v in d.get("dist", ()) or ()))
 

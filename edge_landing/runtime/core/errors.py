@@ -1,4 +1,4 @@
-"""User-facing errors (DESIGN.md §10).
+"""User-facing errors (ARCHITECTURE.md §10).
 
 Entry points raise an :class:`EdgeError` subclass whose message says what is wrong, where, and what was
 expected; ``edge_landing.cli.common.run_cli`` turns it into one line on stderr and exit 2. Per-frame code
@@ -12,11 +12,11 @@ class EdgeError(Exception):
 
 
 class ContractError(EdgeError):
-    """An ONNX file without the model contract of DESIGN.md §5, or with a broken one."""
+    """An ONNX file without the model contract of ARCHITECTURE.md §5, or with a broken one."""
 
 
 class SceneError(EdgeError):
-    """A scene folder (DESIGN.md §4) that is missing, empty or malformed."""
+    """A scene folder (ARCHITECTURE.md §4) that is missing, empty or malformed."""
 
 
 class InputError(EdgeError):

@@ -1,4 +1,4 @@
-"""Pure-numpy surface geometry: normals from depth and the HVO labels of DESIGN.md §4.
+"""Pure-numpy surface geometry: normals from depth and the HVO labels of ARCHITECTURE.md §4.
 
 HVO from normals (the paper's §4.1 recipe): θ = angle between the surface normal and world up;
 horizontal if θ <= horizontal_max, vertical if θ >= vertical_min, other in between; invalid -> 255.
@@ -28,7 +28,7 @@ class HvoThresholds:
                 "vertical_min_deg": math.degrees(self.vertical_min_rad)}
 
     @staticmethod
-    def from_json(d: dict) -> "HvoThresholds":
+    def from_json(d: dict) -> HvoThresholds:
         return HvoThresholds(math.radians(float(d.get("horizontal_max_deg", 10.0))),
                              math.radians(float(d.get("vertical_min_deg", 80.0))))
 

@@ -44,7 +44,7 @@ class Prediction:
 
 @dataclass(frozen=True)
 class Target:
-    """A landing target, or the absence of one with a reason (DESIGN.md §6 step 7).
+    """A landing target, or the absence of one with a reason (ARCHITECTURE.md §6 step 7).
 
     ``position_body_frd_m``: target point in the body FRD frame at capture time (metres).
     ``position_ned_m``: absolute local NED position, when the vehicle position was known.
@@ -68,14 +68,14 @@ class Target:
     timings_s: dict = field(default_factory=dict)
 
     @staticmethod
-    def none(frame_id: int, capture_time_s: float, reason: str, timings_s: Optional[dict] = None) -> "Target":
+    def none(frame_id: int, capture_time_s: float, reason: str, timings_s: Optional[dict] = None) -> Target:
         """No target for this frame, and why."""
         return Target(frame_id, capture_time_s, False, reason, timings_s=dict(timings_s or {}))
 
 
 @dataclass(frozen=True)
 class VehicleState:
-    """Telemetry matched to a frame's capture time (DESIGN.md §3: matched to capture, not to inference end).
+    """Telemetry matched to a frame's capture time (ARCHITECTURE.md §3: matched to capture, not to inference end).
 
     ``attitude``: body FRD relative to local NED (radians). ``position_ned_m``: vehicle local NED position
     (metres) or None. ``agl_m``: height above ground (rangefinder, or relative altitude over flat terrain) or

@@ -1,4 +1,4 @@
-"""Fusion: metric depth + HVO probabilities -> one landing target per frame (DESIGN.md §6).
+"""Fusion: metric depth + HVO probabilities -> one landing target per frame (ARCHITECTURE.md §6).
 
 Per frame: resize to the working size, smooth the depth a little (pixel noise would read as slope),
 back-project, rotate into a gravity-aligned frame (mount and attitude at capture), slope from the depth's

@@ -1,4 +1,4 @@
-"""The top-down ground grid of fusion (DESIGN.md §6 steps 4-5), pure numpy + OpenCV.
+"""The top-down ground grid of fusion (ARCHITECTURE.md §6 steps 4-5), pure numpy + OpenCV.
 
 Per cell it keeps, as PX4-Avoidance's safe_landing_planner does, the (decayed) number of samples, the sum
 and the sum of squares of the height (so mean and spread), the sum of horizontal votes from the net and
@@ -119,7 +119,7 @@ class GridView:
         return (r, c) if 0 <= r < rows and 0 <= c < cols else None
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _lattice(ku: int, kv: int):
     """Offsets (fractions of a pixel step, in (-0.5, 0.5)) of a ku×kv lattice inside a pixel footprint, 1×K×1."""
     a = (np.arange(ku, dtype=np.float32) + 0.5) / ku - 0.5

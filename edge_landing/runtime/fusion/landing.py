@@ -1,4 +1,4 @@
-"""Choosing the landing spot on the fused grid (DESIGN.md §6 step 6).
+"""Choosing the landing spot on the fused grid (ARCHITECTURE.md §6 step 6).
 
 Candidates are cells whose clearance reaches the vehicle radius plus the margin. Score (metres) =
 min(clearance, saturation) - travel_penalty_per_m × horizontal distance from the vehicle, so beyond the

@@ -1,4 +1,4 @@
-"""The MAVLink link (DESIGN.md §8): heartbeat, LANDING_TARGET, STATUSTEXT out; telemetry in; signing; reconnect.
+"""The MAVLink link (ARCHITECTURE.md §8): heartbeat, LANDING_TARGET, STATUSTEXT out; telemetry in; signing; reconnect.
 
 pymavlink is imported lazily (``load_mavutil``) after ``MAVLINK20=1`` is set, because it picks MAVLink 1 or
 2 when it is first imported and the LANDING_TARGET extension fields exist only in MAVLink 2.
@@ -136,7 +136,7 @@ class MavlinkLink:
         self._last_request_s = -math.inf
 
     # -- life cycle -----------------------------------------------------------------------------------
-    def start(self) -> "MavlinkLink":
+    def start(self) -> MavlinkLink:
         check_url(self.config.url)
         if not self.config.url.startswith(NET_PREFIXES):
             try:

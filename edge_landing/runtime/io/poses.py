@@ -1,4 +1,4 @@
-"""Recorded vehicle poses: the ``poses.csv`` of a scene folder or of an ``edge-sim --flight`` (DESIGN.md §4).
+"""Recorded vehicle poses: the ``poses.csv`` of a scene folder or of an ``edge-sim --flight`` (ARCHITECTURE.md §4).
 
 The drone side reads them to replay a recorded flight's telemetry (``edge-run --poses``); the scene reader
 in ``edge_landing.evaluation.scene`` uses the same rows.
@@ -31,7 +31,7 @@ class Pose:
 
 
 def read_poses_csv(path: os.PathLike | str) -> List[Pose]:
-    """The rows of a poses.csv (DESIGN.md §4) in file order; a missing column or bad row is a SceneError."""
+    """The rows of a poses.csv (ARCHITECTURE.md §4) in file order; a missing column or bad row is a SceneError."""
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"poses file {path} does not exist (expected a poses.csv: {','.join(POSE_FIELDS)})")

@@ -1,4 +1,4 @@
-"""Frame sources and the grabber thread (DESIGN.md §3: every frame has an id and a monotonic capture time).
+"""Frame sources and the grabber thread (ARCHITECTURE.md §3: every frame has an id and a monotonic capture time).
 
 A *reader* opens one kind of input and returns RGB uint8 images one by one (``None`` at the end).
 The :class:`Grabber` runs a reader in its own thread. Live sources (a V4L2 camera, an RTSP/GStreamer stream,
@@ -46,7 +46,7 @@ class SourceKind(str, Enum):
         return self in (SourceKind.DEVICE, SourceKind.STREAM, SourceKind.SIM)
 
     @classmethod
-    def from_string(cls, camera: str) -> "SourceKind":
+    def from_string(cls, camera: str) -> SourceKind:
         """Guess the kind from what the user typed for ``--camera``."""
         if camera == "sim" or camera.startswith("sim:"):
             return cls.SIM
@@ -74,7 +74,7 @@ class SourceConfig:
     reopen_max_s: float = 5.0
 
     @staticmethod
-    def from_string(camera: str, **kwargs) -> "SourceConfig":
+    def from_string(camera: str, **kwargs) -> SourceConfig:
         return SourceConfig(camera=camera, kind=SourceKind.from_string(camera), **kwargs)
 
 
@@ -295,7 +295,7 @@ class Grabber:
         self._thread: Optional[threading.Thread] = None
         self._next_id = 0
 
-    def start(self) -> "Grabber":
+    def start(self) -> Grabber:
         """Open the input now (so a missing camera is one clear error) and start the thread."""
         self.reader = self.opener(self.config)
         self._thread = threading.Thread(target=self._run, name="grabber", daemon=True)

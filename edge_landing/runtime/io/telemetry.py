@@ -1,4 +1,4 @@
-"""Telemetry samples matched to a frame's capture time (DESIGN.md §3: capture time, not inference end).
+"""Telemetry samples matched to a frame's capture time (ARCHITECTURE.md §3: capture time, not inference end).
 
 The link thread calls ``add_*`` as messages arrive; the pipeline asks ``state_at(capture_time_s)``.
 Autopilot timestamps (``time_boot_ms``) are mapped onto this computer's monotonic clock with the smallest

@@ -1,4 +1,4 @@
-"""The per-scene depth-scale file (DESIGN.md §7): ``scene/calibration.json``, written by ``edge-calibrate``.
+"""The per-scene depth-scale file (ARCHITECTURE.md §7): ``scene/calibration.json``, written by ``edge-calibrate``.
 
 It is kept outside the model and names the model's sha256, so a scale is never applied silently to a
 different network. Reading it is all the drone needs::
@@ -58,7 +58,7 @@ class SceneCalibration:
         return d
 
     @staticmethod
-    def from_json(d: dict) -> "SceneCalibration":
+    def from_json(d: dict) -> SceneCalibration:
         names = SceneCalibration.__dataclass_fields__
         return SceneCalibration(**{k: d[k] for k in names if k in d})
 

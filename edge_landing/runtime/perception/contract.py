@@ -1,4 +1,4 @@
-"""The ONNX model contract (DESIGN.md §5): written once at export, read once at load.
+"""The ONNX model contract (ARCHITECTURE.md §5): written once at export, read once at load.
 
 Every exported model carries JSON under these ``metadata_props`` keys; the runtime needs nothing else to
 pre-process an image and decode the outputs, so it has no per-architecture code.
@@ -87,7 +87,7 @@ class InputSpec:
                 "color": self.color, "scale": self.scale, "mean": list(self.mean), "std": list(self.std)}
 
     @staticmethod
-    def from_json(d: Mapping) -> "InputSpec":
+    def from_json(d: Mapping) -> InputSpec:
         spec = InputSpec(name=str(d["name"]), layout=Layout.from_string(d["layout"]), height=int(d["height"]),
                          width=int(d["width"]), color=str(d.get("color", "RGB")),
                          scale=float(d.get("scale", 1.0 / 255.0)),
@@ -122,7 +122,7 @@ class DepthSpec:
                 "min_depth": self.min_depth, "max_depth": self.max_depth, "layout": self.layout.value}
 
     @staticmethod
-    def from_json(d: Mapping) -> "DepthSpec":
+    def from_json(d: Mapping) -> DepthSpec:
         spec = DepthSpec(output=str(d["output"]), convention=DepthConvention.from_string(d["convention"]),
                          min_depth=float(d["min_depth"]), max_depth=float(d["max_depth"]),
                          stride=int(d.get("stride", 1)), layout=Layout.from_string(d.get("layout", "NCHW")))
@@ -157,7 +157,7 @@ class HvoSpec:
         return {"output": self.output, "layout": self.layout.value, "classes": list(self.classes)}
 
     @staticmethod
-    def from_json(d: Mapping) -> "HvoSpec":
+    def from_json(d: Mapping) -> HvoSpec:
         spec = HvoSpec(output=str(d["output"]), layout=Layout.from_string(d.get("layout", "NCHW")),
                        classes=tuple(d.get("classes", HVO_CLASSES)))
         if tuple(spec.classes) != HVO_CLASSES:
@@ -183,7 +183,7 @@ class ModelContract:
                                 f"(edge.depth {'present' if self.depth else 'missing'}, "
                                 f"edge.hvo {'present' if self.hvo else 'missing'})")
 
-    def with_quantization(self, settings: dict) -> "ModelContract":
+    def with_quantization(self, settings: dict) -> ModelContract:
         return replace(self, quantization=dict(settings))
 
     def to_metadata(self) -> dict:
@@ -199,12 +199,12 @@ class ModelContract:
         return props
 
     @staticmethod
-    def from_metadata(props: Mapping[str, str], where: str = "model") -> "ModelContract":
+    def from_metadata(props: Mapping[str, str], where: str = "model") -> ModelContract:
         """Parse and validate; any problem raises ContractError naming the key and the file."""
         missing = [k for k in REQUIRED_KEYS if k not in props]
         if missing:
             raise ContractError(f"{where} has no model contract: metadata key(s) {', '.join(missing)} missing "
-                                f"(expected the edge.* keys of DESIGN.md §5; export it with edge-export)")
+                                f"(expected the edge.* keys of ARCHITECTURE.md §5; export it with edge-export)")
         try:
             task = Task.from_string(props[KEY_TASK])
             return ModelContract(

@@ -1,4 +1,4 @@
-"""ONNX Runtime inference driven only by the model contract (DESIGN.md §5).
+"""ONNX Runtime inference driven only by the model contract (ARCHITECTURE.md §5).
 
 The backend sits behind two methods, ``prepare`` (RGB uint8 image -> input tensor) and ``run`` (tensor ->
 raw outputs); ``decode`` turns raw outputs into metric depth and HVO probabilities. ``predict`` does all
@@ -84,7 +84,7 @@ class OnnxModel:
         self._check_io()
 
     @staticmethod
-    def load(path: os.PathLike | str, threads: int = 2, config: Optional[SessionConfig] = None) -> "OnnxModel":
+    def load(path: os.PathLike | str, threads: int = 2, config: Optional[SessionConfig] = None) -> OnnxModel:
         config = config or SessionConfig(threads=threads)
         path = Path(path)
         session = _open_session(path, config)

@@ -1,4 +1,4 @@
-"""In-flight depth scale from the height above ground (DESIGN.md §7), pure numpy; runs on the drone.
+"""In-flight depth scale from the height above ground (ARCHITECTURE.md §7), pure numpy; runs on the drone.
 
 Pixels the network votes horizontal should lie on the ground plane. A pixel's camera ray r (camera frame,
 z = 1 convention) rotated into local NED hits the plane ``agl_m`` below the camera at planar z-depth
