@@ -195,7 +195,7 @@ class SimReader(Reader):
     def __init__(self, config: SourceConfig):
         from edge_landing.runtime.core.errors import require_extra
 
-        sim = require_extra("sim", "sim")
+        sim = require_extra("edge_landing.sim", "sim")
         style, seed = "suburban", 0
         for part in config.camera.split(":")[1:]:
             if part.isdigit():
