@@ -22,11 +22,11 @@ from edge_landing.evaluation.metrics import Averaging
 from edge_landing.evaluation.paper_tables import PaperDataset, PaperTables, paper_tables
 from edge_landing.evaluation.scene import Scene
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.labels import HVO_CLASSES
 from edge_landing.runtime.perception.calibration_file import (
     load_calibration,
     read_calibration,
 )
-from edge_landing.runtime.perception.contract import HVO_CLASSES
 from edge_landing.runtime.perception.inference import OnnxModel
 
 DEPTH_COLUMNS = (("δ1", "a1"), ("δ2", "a2"), ("δ3", "a3"), ("AbsRel", "abs_rel"), ("SqRel", "sq_rel"),

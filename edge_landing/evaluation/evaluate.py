@@ -27,8 +27,8 @@ from edge_landing.evaluation.metrics import (
 )
 from edge_landing.evaluation.scene import Scene
 from edge_landing.runtime.core.errors import InputError, SceneError
+from edge_landing.runtime.core.labels import HVO_CLASSES
 from edge_landing.runtime.core.messages import Prediction
-from edge_landing.runtime.perception.contract import HVO_CLASSES
 from edge_landing.runtime.perception.inference import OnnxModel
 
 

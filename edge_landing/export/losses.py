@@ -25,11 +25,8 @@ from typing import Dict
 import torch
 from torch.nn import functional as F
 
-from edge_landing.runtime.perception.contract import (
-    HVO_IGNORE,
-    DepthConvention,
-    DepthSpec,
-)
+from edge_landing.runtime.core.labels import HVO_IGNORE
+from edge_landing.runtime.perception.contract import DepthConvention, DepthSpec
 
 # DenseDepth's weights: w_depth · L1 + w_grad · gradient L1 + w_ssim · (1 − SSIM)/2.
 W_DEPTH, W_GRAD, W_SSIM = 0.1, 1.0, 1.0

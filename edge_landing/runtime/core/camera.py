@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any, Mapping
 
 import cv2
 import numpy as np
@@ -32,9 +33,9 @@ class Intrinsics:
     fy: float
     cx: float
     cy: float
-    dist: tuple = ()
+    dist: tuple[float, ...] = ()
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.width <= 0 or self.height <= 0 or self.fx <= 0 or self.fy <= 0:
             raise InputError(f"intrinsics need positive size and focal lengths, got {self.width}x{self.height}, "
                              f"fx={self.fx}, fy={self.fy}")
@@ -73,7 +74,8 @@ class Intrinsics:
         """Planar z-depth H×W -> camera-frame points H×W×3 (NaN stays NaN)."""
         if depth_m.shape != (self.height, self.width):
             raise InputError(f"depth shape {depth_m.shape} does not match intrinsics {self.height}x{self.width}")
-        return self.pixel_rays() * depth_m[..., None].astype(np.float32)
+        points: np.ndarray = self.pixel_rays() * depth_m[..., None].astype(np.float32)
+        return points
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Camera-frame points (...×3, z > 0) -> pixel coordinates (...×2), pixel-edge convention, distorted
@@ -87,12 +89,12 @@ class Intrinsics:
         v = self.fy * points_cam[..., 1] / z + self.cy
         return np.stack([u, v], axis=-1)
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
                 "cx": self.cx, "cy": self.cy, "dist": list(self.dist)}
 
     @staticmethod
-    def from_json(d: dict) -> Intrinsics:
+    def from_json(d: Mapping[str, Any]) -> Intrinsics:
         return Intrinsics(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
                           float(d["cx"]), float(d["cy"]), tuple(float(v) for v in d.get("dist", ()) or ()))
 
@@ -118,7 +120,8 @@ def _undistort(pixels: np.ndarray, k: np.ndarray, dist: np.ndarray) -> np.ndarra
     """Normalised undistorted coordinates; 40 iterations (OpenCV's default 5 leaves wide lenses' corners off)."""
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
     if hasattr(cv2, "undistortPointsIter"):        # OpenCV 4.x
-        return cv2.undistortPointsIter(pixels, k, dist, None, None, criteria)
+        xy: np.ndarray = cv2.undistortPointsIter(pixels, k, dist, None, None, criteria)
+        return xy
     return cv2.undistortPoints(pixels, k, dist, criteria=criteria)   # OpenCV 5: the criteria overload
 
 
@@ -139,7 +142,8 @@ def rot_z(a: float) -> np.ndarray:
 
 def rotation_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
     """ZYX Tait-Bryan rotation (aerospace): maps body FRD vectors into the parent (NED) frame."""
-    return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
+    r: np.ndarray = rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
+    return r
 
 
 @dataclass(frozen=True)
@@ -152,7 +156,8 @@ class Mount:
 
     def body_from_camera(self) -> np.ndarray:
         """3×3 rotation: v_body = R @ v_camera."""
-        return rotation_from_euler(self.roll_rad, self.pitch_rad, self.yaw_rad) @ _BODY_FROM_CAMERA_LEVEL
+        r: np.ndarray = rotation_from_euler(self.roll_rad, self.pitch_rad, self.yaw_rad) @ _BODY_FROM_CAMERA_LEVEL
+        return r
 
 
 @dataclass(frozen=True)
@@ -169,9 +174,11 @@ class Attitude:
 
 def ned_from_camera(mount: Mount, attitude: Attitude = Attitude()) -> np.ndarray:
     """3×3 rotation: v_ned = R @ v_camera (gravity-aligned, heading from the attitude's yaw)."""
-    return attitude.ned_from_body() @ mount.body_from_camera()
+    r: np.ndarray = attitude.ned_from_body() @ mount.body_from_camera()
+    return r
 
 
 def up_in_camera(mount: Mount, attitude: Attitude = Attitude()) -> np.ndarray:
     """World 'up' (NED -z) expressed in the camera frame, unit vector."""
-    return ned_from_camera(mount, attitude).T @ np.array([0.0, 0.0, -1.0])
+    up: np.ndarray = ned_from_camera(mount, attitude).T @ np.array([0.0, 0.0, -1.0])
+    return up

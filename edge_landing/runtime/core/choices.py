@@ -2,8 +2,11 @@
 from __future__ import annotations
 
 from enum import Enum
+from typing import TypeVar
 
 from edge_landing.runtime.core.errors import EdgeError, InputError
+
+_C = TypeVar("_C", bound="ChoiceEnum")
 
 
 class ChoiceEnum(str, Enum):
@@ -22,7 +25,7 @@ class ChoiceEnum(str, Enum):
         return InputError
 
     @classmethod
-    def from_string(cls, value: str):
+    def from_string(cls: type[_C], value: str) -> _C:
         if isinstance(value, cls):
             return value
         text = str(value)
@@ -34,4 +37,5 @@ class ChoiceEnum(str, Enum):
                     f"{', '.join(m.value for m in cls)}") from None
 
     def __str__(self) -> str:
-        return self.value
+        value: str = self.value
+        return value

@@ -6,6 +6,8 @@ never raises these: it marks the frame invalid and logs why.
 """
 from __future__ import annotations
 
+from types import ModuleType
+
 
 class EdgeError(Exception):
     """A problem with the user's input or environment, explained in one line."""
@@ -27,7 +29,7 @@ class MissingExtraError(EdgeError):
     """An optional dependency is not installed."""
 
 
-def require_extra(module: str, extra: str):
+def require_extra(module: str, extra: str) -> ModuleType:
     """Import an optional dependency or fail with a hint naming the extra that provides it."""
     import importlib
 

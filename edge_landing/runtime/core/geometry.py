@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -23,12 +24,12 @@ class HvoThresholds:
     horizontal_max_rad: float = math.radians(10.0)
     vertical_min_rad: float = math.radians(80.0)
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, float]:
         return {"horizontal_max_deg": math.degrees(self.horizontal_max_rad),
                 "vertical_min_deg": math.degrees(self.vertical_min_rad)}
 
     @staticmethod
-    def from_json(d: dict) -> HvoThresholds:
+    def from_json(d: Mapping[str, Any]) -> HvoThresholds:
         return HvoThresholds(math.radians(float(d.get("horizontal_max_deg", 10.0))),
                              math.radians(float(d.get("vertical_min_deg", 80.0))))
 
@@ -43,7 +44,7 @@ def normals_from_points(points: np.ndarray) -> np.ndarray:
     dv = np.full_like(p, np.nan)
     du[:, 1:-1] = p[:, 2:] - p[:, :-2]
     dv[1:-1, :] = p[2:, :] - p[:-2, :]
-    n = np.cross(du, dv)
+    n: np.ndarray = np.cross(du, dv)
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         n = n / norm
@@ -61,7 +62,8 @@ def normals_from_depth(depth_m: np.ndarray, intrinsics: Intrinsics) -> np.ndarra
 def slope_from_normals(normals: np.ndarray, up: np.ndarray) -> np.ndarray:
     """Angle (radians) between each normal and the ``up`` vector given in the same frame (NaN stays NaN)."""
     cos = np.clip(normals @ np.asarray(up, dtype=np.float32), -1.0, 1.0)
-    return np.arccos(cos)
+    angle_rad: np.ndarray = np.arccos(cos)
+    return angle_rad
 
 
 def hvo_from_normals(normals: np.ndarray, up: np.ndarray, thresholds: HvoThresholds = HvoThresholds()) -> np.ndarray:

@@ -39,7 +39,7 @@ class Prediction:
     valid: bool = True
     reason: str = ""
     scale: float = 1.0
-    timings_s: dict = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -65,10 +65,10 @@ class Target:
     size_y_rad: float = float("nan")
     clearance_m: float = float("nan")
     confidence: float = 0.0
-    timings_s: dict = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
 
     @staticmethod
-    def none(frame_id: int, capture_time_s: float, reason: str, timings_s: Optional[dict] = None) -> Target:
+    def none(frame_id: int, capture_time_s: float, reason: str, timings_s: Optional[dict[str, float]] = None) -> Target:
         """No target for this frame, and why."""
         return Target(frame_id, capture_time_s, False, reason, timings_s=dict(timings_s or {}))
 

@@ -57,7 +57,7 @@ DEGRADED_NO_HVO = "degraded: depth only (no HVO head), confidence lowered"
 class FusionConfig:
     """Fusion settings. Lengths in metres, angles in radians, times in seconds."""
 
-    working_hw: tuple = (120, 160)                # (height, width) depth and HVO are resized to
+    working_hw: tuple[int, int] = (120, 160)                # (height, width) depth and HVO are resized to
     cell_m: float = 0.5                           # grid cell size
     grid_radius_m: float = 50.0                   # half-width of the square grid around the vehicle
     vehicle_radius_m: float = 1.0
@@ -87,7 +87,7 @@ class FusionConfig:
     min_valid_depth_share: float = 0.05           # less valid depth than this: no target
     depth_only_confidence: float = 0.5            # confidence factor without HVO
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         h, w = self.working_hw
         if h < 8 or w < 8:
             raise InputError(f"fusion working size must be at least 8x8 pixels, got {h}x{w}")
@@ -119,7 +119,7 @@ class FusionConfig:
         return self.vehicle_radius_m + self.margin_m
 
 
-def _resize(a: np.ndarray, hw: tuple, interpolation: int) -> np.ndarray:
+def _resize(a: np.ndarray, hw: tuple[int, int], interpolation: int) -> np.ndarray:
     if a.shape[:2] == tuple(hw):
         return a
     return cv2.resize(a, (hw[1], hw[0]), interpolation=interpolation)
@@ -189,7 +189,8 @@ class LandingFuser:
 
     # -- the steps -------------------------------------------------------------------------------------
 
-    def _update(self, pred: Prediction, state: Optional[VehicleState], now_s: Optional[float], timings: dict) -> Target:
+    def _update(self, pred: Prediction, state: Optional[VehicleState], now_s: Optional[float],
+                timings: dict[str, float]) -> Target:
         cfg = self.config
         fid, t_cap = pred.frame_id, float(pred.capture_time_s)
 
@@ -323,7 +324,7 @@ class LandingFuser:
         return self._grid.add(samples[0], samples[1], samples[2], np.take(hor_px, pix), np.take(flat_px, pix), offset)
 
     def _make_target(self, pred: Prediction, choice: Choice, attitude: Attitude, r_nc: np.ndarray,
-                     position: Optional[np.ndarray], have_hvo: bool, timings: dict) -> Target:
+                     position: Optional[np.ndarray], have_hvo: bool, timings: dict[str, float]) -> Target:
         cfg = self.config
         point = np.array([choice.north_m, choice.east_m, choice.down_m], dtype=np.float64)
         rel = point - position if position is not None else point

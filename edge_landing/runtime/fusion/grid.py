@@ -22,7 +22,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 import cv2
 import numpy as np
@@ -66,26 +66,30 @@ class GridView:
     votes: Optional[np.ndarray] = None   # 2 × rows × cols: (decayed) frames that observed / judged landable
 
     @property
-    def shape(self) -> tuple:
+    def shape(self) -> tuple[int, ...]:
         return self.landable.shape
 
     @property
     def count(self) -> np.ndarray:
-        return self.sums[0].astype(np.float32)
+        count: np.ndarray = self.sums[0].astype(np.float32)
+        return count
 
     def _mean(self, k: int) -> np.ndarray:
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self.sums[0] > 0, self.sums[k] / self.sums[0], np.nan).astype(np.float32)
+            mean: np.ndarray = np.where(self.sums[0] > 0, self.sums[k] / self.sums[0], np.nan).astype(np.float32)
+            return mean
 
     @property
     def height_m(self) -> np.ndarray:
         """Mean down coordinate of each cell (NaN where unobserved)."""
-        return self._mean(1) + np.float32(self.ref_down_m)
+        height_m: np.ndarray = self._mean(1) + np.float32(self.ref_down_m)
+        return height_m
 
     @property
     def spread_m(self) -> np.ndarray:
         mean = self._mean(1)
-        return np.sqrt(np.maximum(self._mean(2) - mean * mean, 0.0))
+        spread_m: np.ndarray = np.sqrt(np.maximum(self._mean(2) - mean * mean, 0.0))
+        return spread_m
 
     @property
     def horizontal_share(self) -> np.ndarray:
@@ -95,7 +99,7 @@ class GridView:
     def flat_share(self) -> np.ndarray:
         return self._mean(4)
 
-    def cell_stats(self, row: int, col: int) -> tuple:
+    def cell_stats(self, row: int, col: int) -> tuple[float, float, float]:
         """(down_m, horizontal_share, flat_share) of one observed cell."""
         c = float(self.sums[0, row, col])
         return (float(self.sums[1, row, col]) / c + self.ref_down_m, float(self.sums[3, row, col]) / c,
@@ -111,7 +115,7 @@ class GridView:
         out[..., 1] = east[None, :]
         return out
 
-    def cell_of(self, north_m: float, east_m: float):
+    def cell_of(self, north_m: float, east_m: float) -> Optional[tuple[int, int]]:
         """(row, col) of the cell holding a point, or None outside the grid."""
         r = int(math.floor((north_m - self.north0_m) / self.cell_m))
         c = int(math.floor((east_m - self.east0_m) / self.cell_m))
@@ -120,7 +124,7 @@ class GridView:
 
 
 @functools.cache
-def _lattice(ku: int, kv: int):
+def _lattice(ku: int, kv: int) -> tuple[np.ndarray, np.ndarray]:
     """Offsets (fractions of a pixel step, in (-0.5, 0.5)) of a ku×kv lattice inside a pixel footprint, 1×K×1."""
     a = (np.arange(ku, dtype=np.float32) + 0.5) / ku - 0.5
     b = (np.arange(kv, dtype=np.float32) + 0.5) / kv - 0.5
@@ -129,7 +133,7 @@ def _lattice(ku: int, kv: int):
 
 
 def splat_samples(points: np.ndarray, step_u: np.ndarray, step_v: np.ndarray, spacing_m: float,
-                  max_footprint_m: float, max_per_axis: int):
+                  max_footprint_m: float, max_per_axis: int) -> tuple[np.ndarray, np.ndarray]:
     """Spread each pixel over its footprint: returns (sample points 3×N, pixel index N).
 
     ``points``, ``step_u``, ``step_v``: 3×P (planar layout: x, y, z rows; gravity-aligned, z down) pixel
@@ -218,7 +222,7 @@ class TopDownGrid:
         s = self.size
         self._acc = np.zeros((_N_SUMS + 2, s, s), dtype=np.float32)   # calloc: untouched pages cost nothing
         self._factor = 1.0                                       # decay not yet applied to _acc
-        self._frame = None                                       # (row0, col0, sums crop) of the last add
+        self._frame: Optional[tuple[int, int, np.ndarray]] = None   # (row0, col0, sums crop) of the last add
         self._fresh = True                                       # no GridView holds _acc yet
 
     def decay(self, factor: float) -> None:
@@ -259,7 +263,7 @@ class TopDownGrid:
         self._acc, self._factor, self._fresh = new, 1.0, True
 
     def add(self, north_m: np.ndarray, east_m: np.ndarray, down_m: np.ndarray, horizontal: np.ndarray,
-            flat: np.ndarray, offset_ned_m=(0.0, 0.0, 0.0)) -> int:
+            flat: np.ndarray, offset_ned_m: Sequence[float] = (0.0, 0.0, 0.0)) -> int:
         """Bin one frame's samples (positions + ``offset_ned_m``, heights, votes in [0, 1]) for :meth:`evaluate`.
 
         Returns how many fell inside the grid. The offset (the vehicle's position in NED mode) is folded into
@@ -354,7 +358,7 @@ def judge_cells(sums: np.ndarray, rules: CellRules) -> np.ndarray:
     share >= x  <=>  Σvotes >= x·count, and spread <= σ  <=>  count·Σh² - (Σh)² <= (σ·count)².
     """
     count, s_h, s_h2, s_hor, s_flat = sums
-    ok = (count >= rules.min_points_per_cell) & (s_flat >= rules.min_flat_share * count)
+    ok: np.ndarray = (count >= rules.min_points_per_cell) & (s_flat >= rules.min_flat_share * count)
     if rules.use_hvo:
         ok &= s_hor >= rules.min_horizontal_share * count
     sigma_n = rules.max_height_spread_m * count
@@ -402,4 +406,5 @@ def clearance_from_mask(landable: np.ndarray, cell_m: float) -> np.ndarray:
     dist = cv2.distanceTransform(landable.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     clear = dist * np.float32(cell_m) - np.float32(cell_m / math.sqrt(2.0))
     clear[~landable] = 0.0
-    return np.maximum(clear, 0.0)
+    clearance_m: np.ndarray = np.maximum(clear, 0.0)
+    return clearance_m

@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import TYPE_CHECKING, Optional, Tuple, overload
 
 import numpy as np
 
 from edge_landing.runtime.fusion.grid import GridView
+
+if TYPE_CHECKING:   # fuser imports this module: the config type is for the checker only
+    from edge_landing.runtime.fusion.fuser import FusionConfig
 
 
 @dataclass(frozen=True)
@@ -40,11 +43,18 @@ class Choice:
     kept: bool
 
 
-def _score(clearance_m, travel_m, config):
-    return np.minimum(clearance_m, config.clearance_saturation_m) - config.travel_penalty_per_m * travel_m
+@overload
+def _score(clearance_m: float, travel_m: float, config: FusionConfig) -> float: ...
+@overload
+def _score(clearance_m: np.ndarray, travel_m: np.ndarray, config: FusionConfig) -> np.ndarray: ...
+def _score(clearance_m: float | np.ndarray, travel_m: float | np.ndarray,
+           config: FusionConfig) -> float | np.ndarray:
+    score: float | np.ndarray = (np.minimum(clearance_m, config.clearance_saturation_m)
+                                 - config.travel_penalty_per_m * travel_m)
+    return score
 
 
-def choose_spot(view: GridView, here_ne: Tuple[float, float], config, kept: Optional[KeptSpot] = None
+def choose_spot(view: GridView, here_ne: Tuple[float, float], config: FusionConfig, kept: Optional[KeptSpot] = None
                 ) -> Optional[Choice]:
     """Best spot on ``view`` for a vehicle at ``here_ne`` (north, east in the grid's frame), or None.
 

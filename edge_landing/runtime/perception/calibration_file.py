@@ -14,7 +14,7 @@ import math
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Any, Dict, Mapping, Optional
 
 from edge_landing.runtime.core.errors import InputError
 
@@ -50,7 +50,7 @@ class SceneCalibration:
     def reliable(self) -> bool:
         return self.relative_spread <= UNRELIABLE_SPREAD
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d.update(format=CALIBRATION_FORMAT, relative_spread=self.relative_spread, reliable=self.reliable,
                  method="scale = median over frames of median(gt)/median(pred) over valid pixels "
@@ -58,11 +58,11 @@ class SceneCalibration:
         return d
 
     @staticmethod
-    def from_json(d: dict) -> SceneCalibration:
+    def from_json(d: Mapping[str, Any]) -> SceneCalibration:
         names = SceneCalibration.__dataclass_fields__
         return SceneCalibration(**{k: d[k] for k in names if k in d})
 
-    def save(self, path: os.PathLike | str) -> Path:
+    def save(self, path: os.PathLike[str] | str) -> Path:
         path = Path(path)
         tmp = path.with_suffix(path.suffix + ".tmp")
         try:
@@ -73,7 +73,7 @@ class SceneCalibration:
         return path
 
 
-def read_calibration(path: os.PathLike | str) -> SceneCalibration:
+def read_calibration(path: os.PathLike[str] | str) -> SceneCalibration:
     """Parse and validate a calibration file; any problem is one InputError naming the file."""
     path = Path(path)
     if not path.is_file():
@@ -91,7 +91,7 @@ def read_calibration(path: os.PathLike | str) -> SceneCalibration:
     return cal
 
 
-def load_calibration(path: os.PathLike | str, model_sha256: Optional[str] = None, strict: bool = False) -> float:
+def load_calibration(path: os.PathLike[str] | str, model_sha256: Optional[str] = None, strict: bool = False) -> float:
     """The scale stored in ``path``. When ``model_sha256`` is given and differs from the file's model,
     warn (or raise InputError when ``strict``): the scale belongs to another network."""
     cal = read_calibration(path)

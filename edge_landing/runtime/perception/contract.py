@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field, replace
-from typing import Mapping, Optional
+from typing import Any, Mapping, Optional
 
 import numpy as np
 
@@ -79,15 +79,15 @@ class InputSpec:
     width: int
     color: str = "RGB"
     scale: float = 1.0 / 255.0
-    mean: tuple = (0.0, 0.0, 0.0)
-    std: tuple = (1.0, 1.0, 1.0)
+    mean: tuple[float, ...] = (0.0, 0.0, 0.0)
+    std: tuple[float, ...] = (1.0, 1.0, 1.0)
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {"name": self.name, "layout": self.layout.value, "height": self.height, "width": self.width,
                 "color": self.color, "scale": self.scale, "mean": list(self.mean), "std": list(self.std)}
 
     @staticmethod
-    def from_json(d: Mapping) -> InputSpec:
+    def from_json(d: Mapping[str, Any]) -> InputSpec:
         spec = InputSpec(name=str(d["name"]), layout=Layout.from_string(d["layout"]), height=int(d["height"]),
                          width=int(d["width"]), color=str(d.get("color", "RGB")),
                          scale=float(d.get("scale", 1.0 / 255.0)),
@@ -117,12 +117,12 @@ class DepthSpec:
     stride: int = 1
     layout: Layout = Layout.NCHW
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {"output": self.output, "stride": self.stride, "convention": self.convention.value,
                 "min_depth": self.min_depth, "max_depth": self.max_depth, "layout": self.layout.value}
 
     @staticmethod
-    def from_json(d: Mapping) -> DepthSpec:
+    def from_json(d: Mapping[str, Any]) -> DepthSpec:
         spec = DepthSpec(output=str(d["output"]), convention=DepthConvention.from_string(d["convention"]),
                          min_depth=float(d["min_depth"]), max_depth=float(d["max_depth"]),
                          stride=int(d.get("stride", 1)), layout=Layout.from_string(d.get("layout", "NCHW")))
@@ -134,6 +134,7 @@ class DepthSpec:
         """Decode the raw H×W output into metres (float32); non-finite values become NaN."""
         y = y.astype(np.float32, copy=False)
         with np.errstate(divide="ignore", invalid="ignore"):
+            d: np.ndarray
             if self.convention is DepthConvention.METRIC:
                 d = y.copy()
             elif self.convention is DepthConvention.INVERSE:
@@ -151,13 +152,13 @@ class HvoSpec:
 
     output: str
     layout: Layout = Layout.NCHW
-    classes: tuple = HVO_CLASSES
+    classes: tuple[str, ...] = HVO_CLASSES
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {"output": self.output, "layout": self.layout.value, "classes": list(self.classes)}
 
     @staticmethod
-    def from_json(d: Mapping) -> HvoSpec:
+    def from_json(d: Mapping[str, Any]) -> HvoSpec:
         spec = HvoSpec(output=str(d["output"]), layout=Layout.from_string(d.get("layout", "NCHW")),
                        classes=tuple(d.get("classes", HVO_CLASSES)))
         if tuple(spec.classes) != HVO_CLASSES:
@@ -174,19 +175,19 @@ class ModelContract:
     input: InputSpec
     depth: Optional[DepthSpec] = None
     hvo: Optional[HvoSpec] = None
-    source: dict = field(default_factory=dict)
-    quantization: Optional[dict] = None
+    source: dict[str, Any] = field(default_factory=dict)
+    quantization: Optional[dict[str, Any]] = None
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.task.has_depth != (self.depth is not None) or self.task.has_hvo != (self.hvo is not None):
             raise ContractError(f"edge.task '{self.task}' does not match the heads described "
                                 f"(edge.depth {'present' if self.depth else 'missing'}, "
                                 f"edge.hvo {'present' if self.hvo else 'missing'})")
 
-    def with_quantization(self, settings: dict) -> ModelContract:
+    def with_quantization(self, settings: Mapping[str, Any]) -> ModelContract:
         return replace(self, quantization=dict(settings))
 
-    def to_metadata(self) -> dict:
+    def to_metadata(self) -> dict[str, str]:
         """The ``metadata_props`` entries (all values are JSON strings, edge.arch/edge.task plain strings)."""
         props = {KEY_ARCH: self.arch, KEY_TASK: self.task.value, KEY_INPUT: json.dumps(self.input.to_json()),
                  KEY_SOURCE: json.dumps(self.source, sort_keys=True, default=str)}
@@ -221,7 +222,7 @@ class ModelContract:
             raise ContractError(f"{where}: broken model contract: bad or missing field {exc}") from None
 
 
-def _load(props: Mapping[str, str], key: str):
+def _load(props: Mapping[str, str], key: str) -> Any:
     try:
         return json.loads(props[key])
     except json.JSONDecodeError as exc:

@@ -14,18 +14,14 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import cv2
 import numpy as np
 
-from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.errors import ContractError, InputError
 from edge_landing.runtime.core.messages import Prediction
-from edge_landing.runtime.perception.contract import (
-    ContractError,
-    Layout,
-    ModelContract,
-)
+from edge_landing.runtime.perception.contract import Layout, ModelContract
 
 
 @dataclass(frozen=True)
@@ -39,7 +35,7 @@ class SessionConfig:
     spin: bool = False
 
 
-def file_sha256(path: os.PathLike | str) -> str:
+def file_sha256(path: os.PathLike[str] | str) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
@@ -47,13 +43,14 @@ def file_sha256(path: os.PathLike | str) -> str:
     return h.hexdigest()
 
 
-def read_contract(path: os.PathLike | str) -> ModelContract:
+def read_contract(path: os.PathLike[str] | str) -> ModelContract:
     """Read and validate the contract of an ONNX file."""
     sess = _open_session(Path(path), SessionConfig(threads=1))
     return ModelContract.from_metadata(sess.get_modelmeta().custom_metadata_map, where=str(path))
 
 
-def _open_session(path: Path, config: SessionConfig):
+def _open_session(path: Path, config: SessionConfig) -> Any:
+    """An ``onnxruntime.InferenceSession`` (onnxruntime ships no type information, hence Any)."""
     import onnxruntime as ort
 
     if not path.is_file():
@@ -76,7 +73,7 @@ def _open_session(path: Path, config: SessionConfig):
 class OnnxModel:
     """One ONNX Runtime session plus its contract."""
 
-    def __init__(self, session, contract: ModelContract, path: Path):
+    def __init__(self, session: Any, contract: ModelContract, path: Path) -> None:
         self.session = session
         self.contract = contract
         self.path = path
@@ -84,7 +81,7 @@ class OnnxModel:
         self._check_io()
 
     @staticmethod
-    def load(path: os.PathLike | str, threads: int = 2, config: Optional[SessionConfig] = None) -> OnnxModel:
+    def load(path: os.PathLike[str] | str, threads: int = 2, config: Optional[SessionConfig] = None) -> OnnxModel:
         config = config or SessionConfig(threads=threads)
         path = Path(path)
         session = _open_session(path, config)
@@ -177,8 +174,9 @@ def preprocess(rgb: np.ndarray, contract: ModelContract) -> np.ndarray:
         return x
     x = (rgb[..., ::-1] if spec.color == "BGR" else rgb).astype(np.float32)
     # OpenCV applies a per-channel scalar in one pass; numpy's broadcast over a last axis of 3 is 2-3x slower.
-    cv2.multiply(x, (*map(float, gain), 0.0), dst=x)
-    cv2.add(x, (*map(float, offset), 0.0), dst=x)
+    # A 4-tuple is a cv::Scalar at runtime; OpenCV's stubs only list Mat operands here.
+    cv2.multiply(x, (*map(float, gain), 0.0), dst=x)  # type: ignore[call-overload]
+    cv2.add(x, (*map(float, offset), 0.0), dst=x)  # type: ignore[call-overload]
     return x[None]
 
 

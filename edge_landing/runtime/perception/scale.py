@@ -107,7 +107,8 @@ def ground_plane_depth(intrinsics: Intrinsics, mount: Mount, attitude: Attitude,
 
 
 def frame_scale(depth_m: np.ndarray, hvo_prob: Optional[np.ndarray], intrinsics: Intrinsics, mount: Mount,
-                attitude: Attitude, agl_m: float, config: AltitudeScaleConfig = AltitudeScaleConfig()) -> FrameScale:
+                attitude: Attitude, agl_m: Optional[float],
+                config: AltitudeScaleConfig = AltitudeScaleConfig()) -> FrameScale:
     """The scale one frame supports (never raises; a frame without usable ground says why)."""
     def no(reason: str, fraction: float = 0.0, pixels: int = 0) -> FrameScale:
         return FrameScale(math.nan, fraction, math.nan, pixels, reason)
@@ -155,7 +156,7 @@ class AltitudeScaleEstimator:
     def reset(self) -> None:
         self._log_scale: Optional[float] = None
         self._gated = 0          # consecutive frames that disagreed with the running value
-        self._gated_logs: list = []
+        self._gated_logs: list[float] = []
         self._since_update = 0
 
     @property
