@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from typing import Callable, Sequence
+from typing import Callable, NoReturn, Sequence
 
 from edge_landing.runtime.core.errors import EdgeError, InputError
 
@@ -19,7 +19,7 @@ class CliParser(argparse.ArgumentParser):
     """argparse whose bad-argument errors are one InputError line (exit 2 through :func:`run_cli`) instead
     of the multi-line usage dump; ``--help`` is unchanged."""
 
-    def error(self, message: str):
+    def error(self, message: str) -> NoReturn:
         raise InputError(f"{message} (see {self.prog} --help)")
 
 

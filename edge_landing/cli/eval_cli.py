@@ -10,7 +10,7 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import Any, Callable, Optional, Sequence, Tuple
 
 from edge_landing.cli.common import CliParser, run_cli
 from edge_landing.evaluation.evaluate import (
@@ -62,17 +62,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _fmt(v) -> str:
+def _fmt(v: Optional[float]) -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3f}"
 
 
-def _table(title: str, header: Sequence[str], rows: List[Sequence[str]]) -> str:
+def _table(title: str, header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
-    line = lambda r: "  ".join(str(c).ljust(w) if i == 0 else str(c).rjust(w) for i, (c, w) in enumerate(zip(r, widths)))
+    line: Callable[[Sequence[str]], str] = lambda r: "  ".join(
+        str(c).ljust(w) if i == 0 else str(c).rjust(w) for i, (c, w) in enumerate(zip(r, widths)))
     return "\n".join([title, line(header), "-" * len(line(header)), *(line(r) for r in rows)])
 
 
-def format_tables(result: dict, paper: Optional[PaperTables] = None) -> str:
+def format_tables(result: dict[str, Any], paper: Optional[PaperTables] = None) -> str:
     """The console report: depth, SSIM/Median Rel, HVO (only the tables the models and scene allow)."""
     cfg = result["config"]
     out = [f"scene {result['scene']}: {result['frames']} frames; valid depth {cfg['min_depth_m']:g}–"
@@ -138,10 +139,11 @@ def format_tables(result: dict, paper: Optional[PaperTables] = None) -> str:
     return "\n".join(out)
 
 
-def _match_calibrations(files: Sequence[str], models: Sequence[OnnxModel]):
+def _match_calibrations(files: Sequence[str], models: Sequence[OnnxModel]) -> tuple[dict[int, float], dict[int, str]]:
     """Pair each calibration file with the model whose sha256 it names (one model: used, with a warning if
     the sha differs). Returns (scales, files) keyed by model index."""
-    scales, names = {}, {}
+    scales: dict[int, float] = {}
+    names: dict[int, str] = {}
     for f in files:
         if len(models) == 1:
             scales[0], names[0] = load_calibration(f, model_sha256=models[0].sha256), f
@@ -156,7 +158,7 @@ def _match_calibrations(files: Sequence[str], models: Sequence[OnnxModel]):
     return scales, names
 
 
-def _depth_range(args, models: Sequence[OnnxModel]) -> Tuple[float, float, str]:
+def _depth_range(args: argparse.Namespace, models: Sequence[OnnxModel]) -> Tuple[float, float, str]:
     """The scored ground-truth range: the flags where given, else the range every depth model's contract
     (``edge.depth`` min/max) covers, so no pixel is scored against a prediction that can only be clamped."""
     specs = [m.contract.depth for m in models if m.contract.depth is not None]
@@ -171,7 +173,7 @@ def _depth_range(args, models: Sequence[OnnxModel]) -> Tuple[float, float, str]:
             args.max_depth if args.max_depth is not None else hi, src)
 
 
-def _json_safe(obj):
+def _json_safe(obj: Any) -> Any:
     """NaN/inf -> null, so the file is strict JSON."""
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
