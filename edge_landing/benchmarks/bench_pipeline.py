@@ -27,6 +27,7 @@ import numpy as np
 from edge_landing.cli.common import run_cli
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.messages import VehicleState
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
 from edge_landing.runtime.io.sources import Grabber, Reader, SourceConfig, SourceKind
@@ -81,7 +82,8 @@ def load_frames(cfg: BenchConfig):
         from edge_landing import sim
 
         cam = sim.SimCamera(seed=0, width=cfg.width, height=cfg.height, fps=10.0)
-        frames = [cam.read()[::2] for _ in tqdm(range(cfg.frames), desc="rendering sim frames", unit="frame")]
+        frames: list[tuple[np.ndarray, Optional[VehicleState]]] = [
+            cam.read()[::2] for _ in tqdm(range(cfg.frames), desc="rendering sim frames", unit="frame")]
         return frames, cam.intrinsics, cam.mount
     grabber = Grabber(SourceConfig.from_string(cfg.camera)).start()
     frames = []
@@ -133,6 +135,7 @@ def bench(cfg: BenchConfig) -> dict:
 
     from edge_landing.runtime.models import default_model_path
 
+    inference: PairInference | JointInference
     if cfg.depth_model and cfg.hvo_model:
         inference = PairInference(OnnxModel.load(cfg.depth_model, threads=cfg.threads),
                                   OnnxModel.load(cfg.hvo_model, threads=cfg.threads))
@@ -148,9 +151,9 @@ def bench(cfg: BenchConfig) -> dict:
 
     for i, (rgb, _) in enumerate(frames[: cfg.warmup]):
         inference.predict(Frame(i, time.monotonic(), rgb))
-    walls = {m: [] for m in MODES}
-    cpus = {m: [] for m in MODES}   # process CPU seconds: the real cost, whatever else the machine runs
-    lats = {m: [] for m in MODES}
+    walls: dict[str, list[float]] = {m: [] for m in MODES}
+    cpus: dict[str, list[float]] = {m: [] for m in MODES}   # process CPU seconds: the real cost, whatever else the machine runs
+    lats: dict[str, list[float]] = {m: [] for m in MODES}
     targets = 0
     for r in tqdm(range(cfg.rounds), desc="rounds (model-only / overlap / sequential)", unit="round"):
         order = MODES[r % 3:] + MODES[: r % 3]  # rotate so no mode always runs first on a warm cache

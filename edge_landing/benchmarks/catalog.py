@@ -107,7 +107,7 @@ def synthetic_calibration_scene(path: Path, height: int, width: int, frames: int
                                          generator={"name": "edge-bench synthetic calibration", "seed": seed}))
     for i in range(frames):
         coarse = rng.uniform(0, 255, (max(height // 16, 2), max(width // 16, 2), 3)).astype(np.float32)
-        rgb = cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC)
+        rgb: np.ndarray = cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC)
         rgb += rng.normal(0, 8, rgb.shape).astype(np.float32)   # some texture on top of the blobs
         writer.write(i, np.clip(rgb, 0, 255).astype(np.uint8))
     writer.close()

@@ -86,7 +86,9 @@ def score(model: PlainModel, scene: Path) -> Dict[str, float]:
     tp = fp = 0
     gts, preds = [], []
     for fid in ids:
-        rgb = cv2.cvtColor(cv2.imread(str(scene / "rgb" / f"{fid}.png")), cv2.COLOR_BGR2RGB)
+        bgr = cv2.imread(str(scene / "rgb" / f"{fid}.png"))
+        assert bgr is not None, f"{scene}/rgb/{fid}.png is not a readable image"   # listed by the glob above
+        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         gt = np.load(scene / "depth" / f"{fid}.npy")
         labels = cv2.imread(str(scene / "hvo" / f"{fid}.png"), cv2.IMREAD_UNCHANGED)
         depth, pred_labels = model.run(rgb)

@@ -60,7 +60,9 @@ def profile_ops(path: os.PathLike | str, contract: ModelContract, threads: int =
 
 def summarise(events: list, runs_after_warmup: int, warmup: int) -> List[OpTime]:
     """Sum 'Node' kernel events per op type over the runs after warm-up (the trace holds every run)."""
-    runs_seen, per_op, nodes = -1, {}, {}
+    runs_seen = -1
+    per_op: dict[str, float] = {}
+    nodes: dict[str, set[str]] = {}
     for ev in events:
         if ev.get("cat") == "Session" and ev.get("name") == "model_run":
             runs_seen += 1

@@ -162,7 +162,8 @@ def write_png(report: dict, path: Path) -> Path:
     import numpy as np
 
     rows = [BenchRow(**r) for r in report["rows"]]
-    series = [(KIND_LABEL[k], [r.ips(k) or 0.0 for r in rows], None) for k in kinds_in(rows)]
+    series: List[tuple[str, List[float], Optional[str]]] = [
+        (KIND_LABEL[k], [r.ips(k) or 0.0 for r in rows], None) for k in kinds_in(rows)]
     if any(r.paper_v100_images_per_s for r in rows):
         series.append(("V100 (paper)", [r.paper_v100_images_per_s or 0.0 for r in rows], "//"))
     x = np.arange(len(rows))

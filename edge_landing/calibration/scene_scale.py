@@ -51,7 +51,7 @@ def calibrate_scene(scene: Scene, model: OnnxModel, config: CalibrationConfig = 
     if not 0 <= lo < hi:
         raise InputError(f"need 0 <= min depth < max depth, got {lo} and {hi}")
     frame_ids = scene.frame_ids[: config.max_frames] if config.max_frames else scene.frame_ids
-    ratios = {}
+    ratios: dict[str, float] = {}
     iterator = progress(frame_ids, total=len(frame_ids), desc="edge-calibrate") if show_progress else frame_ids
     for index, fid in enumerate(iterator):
         rgb = scene.read_rgb(fid)
@@ -63,6 +63,7 @@ def calibrate_scene(scene: Scene, model: OnnxModel, config: CalibrationConfig = 
         if not pred.valid:
             log.warning("frame %s: model output invalid (%s); frame skipped", fid, pred.reason)
             continue
+        assert pred.depth_m is not None     # the contract has a depth head (checked above)
         r = median_scale(gt, pred.depth_m, lo, hi)
         if math.isfinite(r) and r > 0:
             ratios[fid] = r

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Dict, Iterable, List, Optional, Sequence
+from typing import Any, Dict, Iterable, List, Optional, Sequence
 
 import numpy as np
 
@@ -98,24 +98,26 @@ class ModelScore:
             self.invalid_frames.append(frame_id)
             rec["invalid"] = pred.reason
         if self.do_depth and gt_depth is not None:
+            assert pred.depth_m is not None     # do_depth: the model's contract has a depth head
             rec["raw"] = self.raw.add(gt_depth, pred.depth_m)
             s = median_scale(gt_depth, pred.depth_m, lo, hi)
             rec["median_scale"] = s
             if math.isfinite(s):
                 self.ratios.append(s)
                 rec["median_scaled"] = self.median_scaled.add(gt_depth, pred.depth_m.astype(np.float64) * s)
-            if self.calibrated is not None:
+            if self.calibrated is not None and self.scale is not None:     # (calibrated exists iff scale does)
                 rec["calibrated"] = self.calibrated.add(gt_depth, pred.depth_m.astype(np.float64) * self.scale)
             rec["ssim"] = self.ssim.add(ssim(gt_depth, pred.depth_m, lo, hi))
             rec["median_rel"] = self.median_rel.add(median_rel(gt_depth, pred.depth_m, lo, hi))
         if self.do_hvo and gt_hvo is not None:
+            assert pred.hvo_prob is not None    # do_hvo: the model's contract has an HVO head
             m = self.hvo.add(gt_hvo, hvo_labels(pred.hvo_prob))
             rec["hvo"] = {k: m[k] for k in (*HVO_CLASSES, "average", "confusion")}
         self.per_frame.append(rec)
 
     def result(self) -> dict:
         c = self.model.contract
-        out = {"name": self.model.path.stem, "path": str(self.model.path), "sha256": self.model.sha256,
+        out: dict[str, Any] = {"name": self.model.path.stem, "path": str(self.model.path), "sha256": self.model.sha256,
                "arch": c.arch, "task": c.task.value, "invalid_frames": self.invalid_frames,
                "depth": None, "hvo": None, "per_frame": self.per_frame}
         if self.do_depth:

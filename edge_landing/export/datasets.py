@@ -61,7 +61,7 @@ class SceneSet:
     def hw(self) -> tuple:
         return tuple(self.rgb.shape[1:3])
 
-    def batch(self, index: Sequence[int]) -> Batch:
+    def batch(self, index: Sequence[int] | np.ndarray) -> Batch:
         idx = np.asarray(index)
         rgb = torch.from_numpy(self.rgb[idx]).permute(0, 3, 1, 2).float().div_(255.0)
         depth = torch.from_numpy(self.depth_m[idx]) if self.depth_m is not None else None

@@ -23,7 +23,7 @@ import warnings
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Dict, Mapping, Optional, Tuple
+from typing import Any, Dict, Mapping, Optional, Tuple
 
 import numpy as np
 import torch
@@ -185,7 +185,7 @@ def _input_shape(contract: ModelContract) -> Tuple[int, int, int, int]:
 
 def _torch_export(model, x, path: Path, input_name: str, output_names, opset: int) -> str:
     """Legacy TorchScript exporter first (robust for these CNNs); the dynamo exporter if it fails."""
-    kwargs = dict(input_names=[input_name], output_names=list(output_names), opset_version=opset)
+    kwargs: dict[str, Any] = dict(input_names=[input_name], output_names=list(output_names), opset_version=opset)
     errors = []
     for dynamo in (False, True):
         try:

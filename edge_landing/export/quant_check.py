@@ -10,7 +10,7 @@ both pick the same class. Example::
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Sequence, Tuple
+from typing import Any, List, Sequence, Tuple
 
 import numpy as np
 
@@ -64,6 +64,8 @@ def compare(fp32: OnnxModel, int8: OnnxModel, frames: Sequence[FrameRef], progre
         out_hw = (gt_d.shape if gt_d is not None else gt_h.shape if gt_h is not None else rgb.shape[:2])
         p32, p8 = fp32.predict(rgb, out_hw=tuple(out_hw)), int8.predict(rgb, out_hw=tuple(out_hw))
         if depth_acc is not None:
+            # A model whose contract has a depth head predicts depth on every frame.
+            assert vs_fp32 is not None and p32.depth_m is not None and p8.depth_m is not None
             ref = gt_d if gt_d is not None else p32.depth_m
             depth_acc["fp32"].add(ref, p32.depth_m)
             depth_acc["int8"].add(ref, p8.depth_m)
@@ -72,6 +74,7 @@ def compare(fp32: OnnxModel, int8: OnnxModel, frames: Sequence[FrameRef], progre
                 ratio = np.abs(p8.depth_m / p32.depth_m - 1.0)
             depth_agree.append(float(np.mean(np.nan_to_num(ratio, nan=1.0) < 0.05)))
         if hvo_acc is not None:
+            assert p32.hvo_prob is not None and p8.hvo_prob is not None   # the contract has an HVO head
             l32, l8 = p32.hvo_prob.argmax(axis=2), p8.hvo_prob.argmax(axis=2)
             ref = gt_h if gt_h is not None else l32
             hvo_acc["fp32"].add(ref, l32)
@@ -79,9 +82,10 @@ def compare(fp32: OnnxModel, int8: OnnxModel, frames: Sequence[FrameRef], progre
             label_agree.append(float(np.mean(l32 == l8)))
     result: dict = {"frames": len(frames), "first": frame_label(frames[0]), "last": frame_label(frames[-1])}
     if depth_acc is not None:
-        m = {k: acc.result() for k, acc in depth_acc.items()}
+        m: dict[str, dict[str, Any]] = {k: acc.result() for k, acc in depth_acc.items()}
         reference = "ground truth" if use_gt_depth else "fp32"
         if use_gt_depth and depth_acc["fp32"].count == 0:
+            assert vs_fp32 is not None
             m = {"fp32": {"a1": 1.0, "abs_rel": 0.0}, "int8": vs_fp32.result()}
             reference = f"fp32 (no ground-truth pixel inside the model's {lo:g}-{hi:g} m range)"
         result["depth"] = {"reference": reference,

@@ -173,7 +173,8 @@ def _ancestors(producers: dict, outputs: List[str], stop_at_compute: bool = Fals
                limit: Optional[int] = None) -> List[str]:
     """Names of the nodes the given graph outputs depend on (nearest first); with ``stop_at_compute`` a path
     ends at its first compute op (Conv, Gemm, ...), which is still included."""
-    found, stack, seen = [], list(outputs), set()
+    found: List[str] = []
+    stack, seen = list(outputs), set()
     while stack and (limit is None or len(found) < limit):
         node = producers.get(stack.pop())
         if node is None or node.name in seen:
@@ -201,7 +202,8 @@ def _pre_process(src: Path, dst: Path) -> None:
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     # Symbolic shape inference fails on some exported graphs; ONNX's own inference is enough for conv nets.
-    attempts = ({}, {"skip_symbolic_shape": True}, {"skip_symbolic_shape": True, "skip_optimization": True})
+    attempts: tuple[dict[str, bool], ...] = (
+        {}, {"skip_symbolic_shape": True}, {"skip_symbolic_shape": True, "skip_optimization": True})
     last = None
     for kwargs in attempts:
         try:
@@ -342,7 +344,7 @@ def quantize(input: os.PathLike | str, output: os.PathLike | str, config: Quanti
         if unknown:
             raise InputError(f"--exclude-node {unknown[0]} is not a node of {src} after pre-processing")
         excluded = list(config.exclude_nodes)
-        if float_head:
+        if float_head and fp32.contract.depth is not None:     # (checked above: float_head implies a depth head)
             excluded += [n for n in depth_head_nodes(model, fp32.contract.depth.output) if n not in excluded]
         del model
         reader = SceneCalibrationReader(calib, fp32.prepare, fp32.contract.input.name, config.progress)

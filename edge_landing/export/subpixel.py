@@ -76,7 +76,8 @@ def rewrite_conv_transposes(model) -> int:
     from onnx import helper, numpy_helper
 
     inferred = onnx.shape_inference.infer_shapes(model)
-    shapes = {vi.name: [d.dim_value if d.HasField("dim_value") else None for d in vi.type.tensor_type.shape.dim]
+    # Dimensions are int or None (unknown); _rewritable only passes nodes whose input sizes are known ints.
+    shapes: Dict[str, list] = {vi.name: [d.dim_value if d.HasField("dim_value") else None for d in vi.type.tensor_type.shape.dim]
               for vi in list(inferred.graph.value_info) + list(inferred.graph.input)}
     inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
     new_nodes: List = []

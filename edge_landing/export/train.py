@@ -136,6 +136,7 @@ def losses_from_outputs(depth_out, hvo_out, depth_m, hvo, setup: _Setup) -> Dict
     terms: Dict[str, torch.Tensor] = {}
     total = (depth_out if depth_out is not None else hvo_out).new_zeros(())
     if depth_out is not None:
+        assert setup.space is not None     # a depth output comes with the depth head's loss space
         gt = _at(depth_m, depth_out.shape[-2:])[:, None]
         d = depth_loss(setup.space.output_to_loss(depth_out), setup.space.target_to_loss(gt), setup.space.valid(gt),
                        setup.depth_l1_weight)
@@ -165,6 +166,7 @@ def evaluate(model, data: SceneSet, setup: _Setup, batch: int, device) -> dict:
             sums[k] = sums.get(k, 0.0) + float(v)
         n_batches += 1
         if depth_out is not None:
+            assert setup.space is not None and depth is not None   # a depth head is trained on depth frames
             gt = _at(depth, depth_out.shape[-2:])
             pred = setup.space.loss_to_metres(setup.space.output_to_loss(depth_out[:, 0]))
             for g, p in zip(gt, pred):
@@ -175,6 +177,7 @@ def evaluate(model, data: SceneSet, setup: _Setup, batch: int, device) -> dict:
                 deltas.append(float((torch.maximum(g[ok] / p_s, p_s / g[ok]) < DELTA1).float().mean()))
                 absrels.append(float(((g[ok] - p_s).abs() / g[ok]).mean()))
         if hvo_out is not None:
+            assert hvo is not None                                  # an HVO head is trained on HVO frames
             lab = _at(hvo, hvo_out.shape[-2:]).flatten().cpu()
             pred_lab = hvo_out.argmax(1).flatten().cpu()
             keep = lab != HVO_IGNORE

@@ -66,7 +66,7 @@ def config_from_args(args: argparse.Namespace):
     for flag, value in (("--resume", args.resume), ("--init", args.init)):
         if value and not Path(value).is_file():
             raise InputError(f"{flag} checkpoint {value} does not exist")
-    options = ()
+    options: tuple[tuple[str, float], ...] = ()
     if args.net_width is not None:
         if args.arch != "edgenet":
             raise InputError(f"--net-width applies to edgenet only, not {args.arch}")

@@ -89,8 +89,10 @@ def plan_flight(world: World, rng: np.random.Generator, frames: int, fps: float)
                 best = (clearance, target, zt, yaw)
             if clearance > 12.0:
                 break
+        assert best is not None   # the first heading tried is always kept
         if best[0] > 12.0:
             break
+    assert best is not None       # targets or [np.zeros(2)] is never empty
     _, target, zt, yaw = best
     app, des, s = path(target, zt, yaw, n_app, n_des)
     out: list[VehicleSample] = []

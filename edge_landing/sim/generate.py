@@ -32,7 +32,7 @@ SCENE_SUBFOLDERS = ("rgb", "depth", "hvo", "normals")
 class SimConfig:
     """What to generate. Sizes in pixels; ``fps`` sets frame times (t = frame / fps) and the video rate."""
 
-    out: Path
+    out: Path | str
     frames: int = 10
     style: Style = Style.SUBURBAN
     seed: int = 0
@@ -166,7 +166,7 @@ def generate(config: SimConfig, progress: bool = True) -> Path:
 def _open_video(path: Path, config: SimConfig):
     import cv2
 
-    video = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(config.fps),
+    video = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), float(config.fps),
                             (config.width, config.height))
     if not video.isOpened():
         raise SceneError(f"cannot open {path} for writing an mp4v video (OpenCV without an MP4 encoder?)")

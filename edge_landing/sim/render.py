@@ -91,7 +91,7 @@ class Renderer:
         s = self.shadow_stride
         pts, nrm, lam = g.points_ned[::s, ::s], g.normals_ned[::s, ::s], lambert[::s, ::s]
         need = lam > 0
-        lit = np.zeros(lam.shape, np.float32)
+        lit: np.ndarray = np.zeros(lam.shape, np.float32)
         if need.any():
             # Push the origin off the surface; Embree's float32 error grows with the distance travelled.
             offset = 0.03 + 3e-4 * g.depth_m[::s, ::s][need][:, None].astype(np.float64)

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
+from typing import cast
 
 import numpy as np
+import numpy.typing as npt
 
 from .meshes import Part, boxes, cars, ellipsoids, gabled_roofs
 from .world import WORLD_HALF_SIZE_M, GroundMap, Material, Terrain
@@ -91,6 +93,11 @@ class Collector:
         return Part.concat(parts)
 
 
+# (north0, east0, north1, east1) of axis-aligned rectangles, metres: scalars or arrays of corners. The casts
+# below widen a union of two 4-tuples, which mypy cannot star-unpack before a fifth argument.
+_Rect = tuple[npt.ArrayLike, npt.ArrayLike, npt.ArrayLike, npt.ArrayLike]
+
+
 def _lines(rng, spacing_m: tuple[float, float]) -> np.ndarray:
     """Road centre lines across the world at random spacings (a little beyond the edges)."""
     out, x = [], -WORLD_HALF_SIZE_M - rng.uniform(0, spacing_m[1])
@@ -100,17 +107,18 @@ def _lines(rng, spacing_m: tuple[float, float]) -> np.ndarray:
     return np.array(out)
 
 
-def _paint_roads(ground: GroundMap, rng, avenues, streets, half_width, sidewalk, urban: bool) -> None:
+def _paint_roads(ground: GroundMap, rng: np.random.Generator, avenues: np.ndarray, streets: np.ndarray,
+                 half_width: float, sidewalk: float, urban: bool) -> None:
     """Sidewalks, asphalt, centre markings (and zebra crossings in town); avenues run north-south."""
     big = WORLD_HALF_SIZE_M + 50
     for lines, along_n in ((avenues, True), (streets, False)):
         for c in lines:
             lo, hi = (c - half_width - sidewalk, c + half_width + sidewalk)
-            ground.rects(*((-big, lo, big, hi) if along_n else (lo, -big, hi, big)), Material.CONCRETE)
+            ground.rects(*cast(_Rect, (-big, lo, big, hi) if along_n else (lo, -big, hi, big)), Material.CONCRETE)
     for lines, along_n in ((avenues, True), (streets, False)):
         for c in lines:
             lo, hi = c - half_width, c + half_width
-            ground.rects(*((-big, lo, big, hi) if along_n else (lo, -big, hi, big)), Material.ASPHALT)
+            ground.rects(*cast(_Rect, (-big, lo, big, hi) if along_n else (lo, -big, hi, big)), Material.ASPHALT)
     dash = np.arange(-big, big, 9.0)
     for lines, along_n in ((avenues, True), (streets, False)):
         for c in lines:
@@ -118,11 +126,11 @@ def _paint_roads(ground: GroundMap, rng, avenues, streets, half_width, sidewalk,
             for off in offsets:
                 s0, s1 = dash, dash + 3.0
                 w0, w1 = np.full_like(dash, c + off - 0.18), np.full_like(dash, c + off + 0.18)
-                ground.rects(*((s0, w0, s1, w1) if along_n else (w0, s0, w1, s1)), Material.MARKING)
+                ground.rects(*cast(_Rect, (s0, w0, s1, w1) if along_n else (w0, s0, w1, s1)), Material.MARKING)
             if urban:       # solid double centre line
                 for off in (-0.3, 0.3):
                     lo, hi = c + off - 0.12, c + off + 0.12
-                    ground.rects(*((-big, lo, big, hi) if along_n else (lo, -big, hi, big)), Material.MARKING)
+                    ground.rects(*cast(_Rect, (-big, lo, big, hi) if along_n else (lo, -big, hi, big)), Material.MARKING)
     for a in avenues:                           # clear the markings out of the intersections
         for s in streets:
             ground.rects(s - half_width, a - half_width, s + half_width, a + half_width, Material.ASPHALT)

@@ -13,6 +13,7 @@ from enum import IntEnum
 from functools import lru_cache
 
 import numpy as np
+import numpy.typing as npt
 
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import require_extra
@@ -124,7 +125,8 @@ class GroundMap:
         row = (np.asarray(north, np.float64) + WORLD_HALF_SIZE_M) / GROUND_MAP_RES_M - 0.5
         return np.round(np.stack([col, row], axis=-1) * 16).astype(np.int32)
 
-    def rects(self, n0, e0, n1, e1, material: Material) -> None:
+    def rects(self, n0: npt.ArrayLike, e0: npt.ArrayLike, n1: npt.ArrayLike, e1: npt.ArrayLike,
+              material: Material) -> None:
         """Axis-aligned rectangles (arrays of corners, metres)."""
         import cv2
 

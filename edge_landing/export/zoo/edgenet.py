@@ -34,7 +34,7 @@ import json
 import logging
 import math
 from pathlib import Path
-from typing import Tuple
+from typing import Tuple, cast
 
 import torch
 from torch import nn
@@ -130,7 +130,7 @@ class EdgeNet(nn.Module):
         self.hvo_head = Head(c1, 3) if task.has_hvo else None
         if self.depth_head is not None:
             # Start in the middle of the log range (~30 m for 1..1000 m) rather than at 1 m.
-            nn.init.constant_(self.depth_head[-1].bias, 0.5)
+            nn.init.constant_(cast(torch.Tensor, self.depth_head[-1].bias), 0.5)   # Head's last conv has a bias
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         e1 = self.stem(x)
@@ -204,7 +204,7 @@ def _input_channel_map(name: str, old: Tuple[int, ...], new: Tuple[int, ...], ol
     return torch.arange(old_in)
 
 
-def widen_state_dict(narrow: dict, model: EdgeNet) -> dict:
+def widen_state_dict(narrow: dict, model: nn.Module) -> dict:
     """A narrower EdgeNet's weights placed inside ``model`` so that the wide model computes the same outputs.
 
     Old channels keep their weights; each new channel keeps its random incoming weights (so it is active and

@@ -195,7 +195,7 @@ class EfficientNet(nn.Module):
         stages, channels = [], stem
         for stage in cfg.stages:
             out = cfg.channels(stage.out_channels)
-            blocks = []
+            blocks: list[nn.Module] = []
             for i in range(cfg.repeats(stage.repeats)):
                 stride = stage.stride if i == 0 else 1
                 if stage.kind == "ds":

@@ -12,7 +12,7 @@ registered in exactly the authors' order and loaded by position::
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Tuple
+from typing import Callable, Optional, Tuple
 
 import torch
 from torch import nn
@@ -60,6 +60,8 @@ def _out_channels(task: Task) -> int:
 
 class _NhwcNet(nn.Module):
     """NHWC in, NHWC out; subclasses implement ``forward_nchw``."""
+
+    forward_nchw: Callable[[torch.Tensor], torch.Tensor]
 
     def forward(self, x: torch.Tensor) -> Tuple[torch.Tensor]:
         y = self.forward_nchw(x.permute(0, 3, 1, 2))
@@ -185,10 +187,11 @@ class SafeUAVSmall(_NhwcNet):
         d2 = F.relu(self.down2(F.relu(self.down1pool(d1))))
         d3 = F.relu(self.down3(F.relu(self.down2pool(d2))))
         y = F.relu(self.down3pool(d3))
-        total = None
+        total: Optional[torch.Tensor] = None
         for i in range(1, len(DILATIONS) + 1):
             y = F.relu(getattr(self, f"dilate{i}")(y))
             total = y if total is None else total + y
+        assert total is not None    # DILATIONS is not empty
         y = self._up(self.up3_tr, self.up3, total, d3)
         y = self._up(self.up2_tr, self.up2, y, d2)
         y = self._up(self.up1_tr, self.up1, y, d1)

@@ -39,7 +39,7 @@ class SceneCalibration:
     scene_path: str
     created_utc: str
     min_depth_m: float
-    max_depth_m: float
+    max_depth_m: Optional[float]       # None: no upper bound (JSON has no infinity)
     ratios: Dict[str, float] = field(default_factory=dict)
 
     @property
