@@ -21,7 +21,7 @@ import numpy as np
 
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
-from edge_landing.runtime.perception.contract import HVO_CLASSES, HVO_IGNORE
+from edge_landing.runtime.core.labels import HVO_CLASSES, HVO_IGNORE
 
 DEPTH_KEYS = ("a1", "a2", "a3", "abs_rel", "sq_rel", "rms", "rms_log", "log10", "silog")
 HVO_KEYS = ("accuracy", "precision", "recall", "iou")

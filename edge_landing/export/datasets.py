@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from edge_landing.evaluation.scene import Scene
 from edge_landing.runtime.core.errors import SceneError
-from edge_landing.runtime.perception.contract import HVO_IGNORE
+from edge_landing.runtime.core.labels import HVO_IGNORE
 
 
 @dataclass(frozen=True)

@@ -25,8 +25,8 @@ from typing import Dict
 import torch
 from torch.nn import functional as F
 
+from edge_landing.runtime.core.labels import HVO_IGNORE
 from edge_landing.runtime.perception.contract import (
-    HVO_IGNORE,
     DepthConvention,
     DepthSpec,
 )

@@ -26,8 +26,8 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.labels import HVO_IGNORE
 from edge_landing.runtime.perception.contract import (
-    HVO_IGNORE,
     Layout,
     ModelContract,
     Task,
