@@ -60,13 +60,13 @@ def test_calibration_recovers_a_known_scale(tmp_path, model_path):
 def test_cli_writes_scene_calibration_json_and_it_loads_back(tmp_path, model_path, capsys):
     scene = write_scaled_scene(tmp_path / "scene", scale=0.4)
     assert calibrate_main([str(scene), "--model", str(model_path), "--threads", "1"]) == 0
-    data = json.loads((scene / "edge_landing.calibration.json").read_text())
+    data = json.loads((scene / "calibration.json").read_text())
     assert data["scale"] == pytest.approx(0.4, rel=0.01)
     for key in ("mad", "min_ratio", "max_ratio", "frames_used", "model_sha256", "model_path", "scene_path",
                 "created_utc", "ratios"):
         assert key in data
     sha = OnnxModel.load(model_path, threads=1).sha256
-    assert load_calibration(scene / "edge_landing.calibration.json", model_sha256=sha) == pytest.approx(data["scale"])
+    assert load_calibration(scene / "calibration.json", model_sha256=sha) == pytest.approx(data["scale"])
     assert f"scale {data['scale']:.4f}" in capsys.readouterr().out
 
 
@@ -89,7 +89,7 @@ def test_spread_out_scene_is_flagged_unreliable(tmp_path, model_path, capsys):
     writer.close()
     assert calibrate_main([str(scene), "--model", str(model_path)]) == 0
     assert "frames disagree" in capsys.readouterr().out
-    assert read_calibration(scene / "edge_landing.calibration.json").reliable is False
+    assert read_calibration(scene / "calibration.json").reliable is False
 
 
 def test_scene_without_depth_is_refused_with_one_line(tmp_path, model_path, capsys):
@@ -124,7 +124,7 @@ def test_cli_subprocess_exit_codes(tmp_path, model_path):
     ok = subprocess.run([sys.executable, "-m", "edge_landing.calibration.cli", str(scene), "--model", str(model_path)],
                         capture_output=True, text=True, timeout=120)
     assert ok.returncode == 0, ok.stderr
-    assert (scene / "edge_landing.calibration.json").exists()
+    assert (scene / "calibration.json").exists()
     bad = subprocess.run([sys.executable, "-m", "edge_landing.calibration.cli", str(tmp_path / "nowhere"), "--model",
                           str(model_path)], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "does not exist" in bad.stderr and "Traceback" not in bad.stderr

@@ -107,9 +107,9 @@ def test_calibrated_rows_use_the_calibration_file(tmp_path, model_path, capsys):
 
     scene = write_scene(tmp_path / "scene")
     assert calibrate_main([str(scene), "--model", str(model_path)]) == 0
-    scale = json.loads((scene / "edge_landing.calibration.json").read_text())["scale"]
+    scale = json.loads((scene / "calibration.json").read_text())["scale"]
     out = tmp_path / "r.json"
-    assert eval_main([str(model_path), str(scene), "--calibration", str(scene / "edge_landing.calibration.json"),
+    assert eval_main([str(model_path), str(scene), "--calibration", str(scene / "calibration.json"),
                       "--json", str(out), "--min-depth", "1e-3", "--max-depth", "80", "--paper"]) == 0
     printed = capsys.readouterr().out
     assert "cal tiny" in printed and "paper * AdaBins-80" in printed and "paper SafeUAV-Net-Large" in printed

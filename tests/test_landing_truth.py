@@ -7,12 +7,18 @@ import pytest
 pytest.importorskip("embreex")
 
 from edge_landing import sim  # noqa: E402
-from edge_landing.benchmarks.landing_truth import TruthConfig, check_target, evaluate  # noqa: E402
+from edge_landing.benchmarks.landing_truth import TruthConfig, check_target, evaluate, main  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def world():
     return sim.build_world("suburban", 0)
+
+
+def run_header(style, seed, camera="sim", source_kind="sim"):
+    """The first line edge-run --log writes: where the frames came from."""
+    return {"run": {"version": "0.2.0", "camera": camera, "source_kind": source_kind, "sim_style": style,
+                    "sim_seed": seed, "poses": None, "model": "edgenet.onnx", "autopilot": "ardupilot"}}
 
 
 def open_spot(world):
@@ -35,8 +41,47 @@ def test_open_ground_passes_and_a_pitched_roof_fails(world, tmp_path):
     log = tmp_path / "t.jsonl"
     ln, le = open_spot(world)
     log.write_text("\n".join(json.dumps(r) for r in (
+        run_header("suburban", 0),
         {"frame": 0, "valid": True, "ned_m": [float(ln), float(le), 0.0]},
         {"frame": 1, "valid": True, "ned_m": [float(n), float(e), 0.0]},
         {"frame": 2, "valid": False, "ned_m": None})) + "\n")
     result = evaluate(TruthConfig(log=str(log)))
     assert (result["targets"], result["safe"]) == (2, 1) and result["failures"][0]["frame"] == 1
+
+
+def write_log(path, header, ned):
+    lines = ([header] if header else []) + [{"frame": 0, "valid": True, "ned_m": [float(ned[0]), float(ned[1]), 0.0]}]
+    path.write_text("\n".join(json.dumps(r) for r in lines) + "\n")
+    return path
+
+
+def test_the_world_comes_from_the_log_header_and_flags_override_it(world, tmp_path, capsys):
+    n, e = open_spot(world)               # open ground in suburban seed 0
+    log = write_log(tmp_path / "sub.jsonl", run_header("suburban", 0), (n, e))
+    result = evaluate(TruthConfig(log=str(log)))
+    assert result["world"] == {"style": "suburban", "seed": 0, "from": "the log header"}
+    assert (result["frames"], result["targets"], result["safe"]) == (1, 1, 1)   # the header is not a decision
+    # the same spot judged in a log that says urban seed 3: another world, so it is judged there
+    urban = write_log(tmp_path / "urban.jsonl", run_header("urban", 3), (n, e))
+    assert evaluate(TruthConfig(log=str(urban)))["world"] == {"style": "urban", "seed": 3, "from": "the log header"}
+    # explicit flags win over the header
+    assert main([str(urban), "--style", "suburban", "--seed", "0"]) == 0
+    assert "1/1 targets" in capsys.readouterr().out
+    over = evaluate(TruthConfig(log=str(urban), style="suburban", seed=0))
+    assert over["world"] == {"style": "suburban", "seed": 0, "from": "--style/--seed"} and over["safe"] == 1
+
+
+def test_a_log_that_names_no_world_is_refused_in_one_line(world, tmp_path, capsys):
+    n, e = open_spot(world)
+    bare = write_log(tmp_path / "old.jsonl", None, (n, e))
+    assert main([str(bare)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no run header" in err[0] and "--style and --seed" in err[0]
+    assert main([str(bare), "--style", "suburban"]) == 2          # half a world is no world: no default seed
+    assert "--seed" in capsys.readouterr().err
+    assert main([str(bare), "--style", "suburban", "--seed", "0"]) == 0
+    video = write_log(tmp_path / "video.jsonl", run_header(None, None, "flight.mp4", "video"), (n, e))
+    assert main([str(video)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "flight.mp4" in err[0] and "not a known sim world" in err[0]
+    assert main([str(video), "--style", "suburban", "--seed", "0"]) == 0

@@ -46,7 +46,7 @@ def render(spec: SceneSpec, frames: int, root: Path) -> Path:
     out = root / f"{spec.style}{spec.seed}"
     if not (out / "scene.json").is_file():
         subprocess.run(["edge-sim", str(out), "--frames", str(frames), "--style", spec.style, "--seed",
-                        str(spec.seed), "--quiet", "--no-normals"], check=True)
+                        str(spec.seed), "--no-progress", "--no-normals"], check=True)
     return out
 
 

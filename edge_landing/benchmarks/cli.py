@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence, Tuple
 
-from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.cli.common import CliParser, output_folder, run_cli
 from edge_landing.evaluation.scene import Scene
 from edge_landing.runtime.core.errors import InputError
 
@@ -47,7 +47,9 @@ class BenchConfig:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = CliParser(prog="edge-bench", description=__doc__.split("\n\n")[0],
+    # the [bench] extra brings [export] (the zoo is exported with torch) and matplotlib for report.png
+    p = CliParser(prog="edge-bench", description=__doc__.split("\n\n")[0], extra="bench",
+                  extra_modules=("torch", "onnx", "onnxscript", "tqdm", "matplotlib"),
                   formatter_class=argparse.RawDescriptionHelpFormatter,
                   epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--models", help=f"comma-separated (default {','.join(DEFAULT_MODELS)}; "
@@ -70,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--profile", action="store_true", help="add ONNX Runtime's per-op kernel time (FP32, INT8)")
     p.add_argument("--no-torch", action="store_true", help="leave out the PyTorch eager column")
     p.add_argument("--rebuild", action="store_true", help="re-export and re-quantize even if cached")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_no_progress()
     return p
 
 
@@ -214,10 +216,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     config = parse_config(argv)
     # Idle OpenMP threads of PyTorch would otherwise spin and slow the next backend (before torch loads).
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    try:
-        config.out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create output folder {config.out}: {exc.strerror}") from None
+    output_folder(config.out, "the --out folder")
+    output_folder(config.prepare.cache_dir, "the --cache folder")
     report = run(config)
     print(rep.to_markdown(report))
     paths = [rep.write_json(report, config.out / "report.json"), rep.write_csv(report, config.out / "report.csv"),

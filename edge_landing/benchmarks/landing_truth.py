@@ -5,7 +5,12 @@ cast over the disc of the requested clearance radius around the target's local N
 counts as safe when every ray hits a horizontal surface (normal within ``horizontal_max_deg`` of up,
 ARCHITECTURE.md §4) and all hits lie within ``max_step_m`` of each other in height (no kerb, car or wall inside).
 
-    edge-run --log /tmp/t.jsonl && python -m benchmarks.landing_truth /tmp/t.jsonl --clearance 2.0
+The world (style, seed) comes from the log's first line, the ``{"run": {...}}`` header edge-run writes
+(``sim_style``, ``sim_seed``); ``--style``/``--seed`` override it, e.g. for an ``edge-sim --flight`` video
+replayed with its poses. A log that names no world and no flags is refused: judging against the wrong world
+gives a confident, wrong figure.
+
+    edge-run --log /tmp/t.jsonl && python -m edge_landing.benchmarks.landing_truth /tmp/t.jsonl --clearance 2.0
 """
 from __future__ import annotations
 
@@ -13,7 +18,7 @@ import argparse
 import json
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
@@ -24,8 +29,8 @@ from edge_landing.runtime.core.errors import InputError
 @dataclass(frozen=True)
 class TruthConfig:
     log: str
-    style: str = "suburban"
-    seed: int = 0
+    style: Optional[str] = None   # the world: None = from the log's run header
+    seed: Optional[int] = None
     clearance_m: float = 2.0      # the vehicle radius + margin edge-run was given (defaults 1 + 1)
     sample_step_m: float = 0.25
     horizontal_max_deg: float = 10.0
@@ -57,18 +62,55 @@ def check_target(world, north_m: float, east_m: float, cfg: TruthConfig) -> tupl
     return True, "ok"
 
 
+def read_log(path: str) -> tuple[Optional[dict[str, Any]], list[dict[str, Any]]]:
+    """(run header or None, decision records) of an ``edge-run --log`` file."""
+    try:
+        with open(path) as f:
+            lines = f.read().splitlines()
+    except OSError as exc:
+        raise InputError(f"cannot read decision log {path}: {exc.strerror}") from None
+    records = []
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"{path} line {number} is not JSON ({exc.msg}); expected edge-run --log lines") from None
+    header = None
+    if records and isinstance(records[0], dict) and isinstance(records[0].get("run"), dict):
+        header, records = records[0]["run"], records[1:]
+    return header, records
+
+
+def world_of(cfg: TruthConfig, header: Optional[dict[str, Any]]) -> tuple[str, int, str]:
+    """(style, seed, where they came from): the flags where given, the rest from the log's run header."""
+    run: dict[str, Any] = header or {}
+    style = cfg.style if cfg.style is not None else run.get("sim_style")
+    seed = cfg.seed if cfg.seed is not None else run.get("sim_seed")
+    if style is None or seed is None:
+        missing = " and ".join(f for f, v in (("--style", style), ("--seed", seed)) if v is None)
+        if header is None:
+            raise InputError(f"{cfg.log} has no run header naming its world (an older edge-run --log?); "
+                             f"give {missing} of the sim world it was flown in")
+        raise InputError(f"{cfg.log} comes from camera '{run.get('camera')}' ({run.get('source_kind')}), not a "
+                         f"known sim world; give {missing} if it was rendered by edge-sim")
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise InputError(f"{cfg.log}: sim_seed {seed!r} in the run header is not an integer")
+    given = [f for f, v in (("--style", cfg.style), ("--seed", cfg.seed)) if v is not None]
+    source = ("/".join(given) + (" and the log header" if len(given) < 2 else "")) if given else "the log header"
+    return str(style), seed, source
+
+
 def evaluate(cfg: TruthConfig) -> dict:
     from edge_landing import sim
 
-    try:
-        lines = open(cfg.log).read().splitlines()
-    except OSError as exc:
-        raise InputError(f"cannot read decision log {cfg.log}: {exc.strerror}") from None
-    records = [json.loads(line) for line in lines if line.strip()]
-    targets = [r for r in records if r.get("valid") and r.get("ned_m")]
+    header, records = read_log(cfg.log)
     if not records:
         raise InputError(f"{cfg.log} holds no decisions (expected the JSON lines of edge-run --log)")
-    world = sim.build_world(cfg.style, cfg.seed)
+    style, seed, source = world_of(cfg, header)
+    targets = [r for r in records if r.get("valid") and r.get("ned_m")]
+    world = sim.build_world(style, seed)
     failures = []
     for r in targets:
         ok, why = check_target(world, r["ned_m"][0], r["ned_m"][1], cfg)
@@ -77,20 +119,22 @@ def evaluate(cfg: TruthConfig) -> dict:
     safe = len(targets) - len(failures)
     return {"frames": len(records), "targets": len(targets), "safe": safe,
             "safe_share": safe / len(targets) if targets else math.nan, "failures": failures,
-            "config": cfg.__dict__}
+            "world": {"style": style, "seed": seed, "from": source}, "config": cfg.__dict__}
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
     p = CliParser(prog="landing_truth", description=__doc__.split("\n\n")[0],
-                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("log")
-    p.add_argument("--style", default="suburban")
-    p.add_argument("--seed", type=int, default=0)
+                  formatter_class=argparse.RawDescriptionHelpFormatter, extra="sim", extra_modules=("embreex",))
+    p.add_argument("log", help="decision log of edge-run --log (JSON lines, the run header first)")
+    p.add_argument("--style", help="sim world style (default: the log header's sim_style)")
+    p.add_argument("--seed", type=int, help="sim world seed (default: the log header's sim_seed)")
     p.add_argument("--clearance", type=float, default=2.0, help="requested clearance radius, metres")
     a = p.parse_args(argv)
     result = evaluate(TruthConfig(a.log, a.style, a.seed, a.clearance))
+    w = result["world"]
     print(f"{result['safe']}/{result['targets']} targets on ground-truth horizontal, level ground with "
-          f"{a.clearance:.1f} m clearance ({100 * result['safe_share']:.1f} %); {result['frames']} frames")
+          f"{a.clearance:.1f} m clearance ({100 * result['safe_share']:.1f} %); {result['frames']} frames; "
+          f"world {w['style']} seed {w['seed']} (from {w['from']})")
     for f in result["failures"][:10]:
         print(f"  frame {f['frame']}: {f['why']} at NED {[round(v, 1) for v in f['ned_m']]}")
     return 0

@@ -5,10 +5,9 @@ The model defaults to the shipped one and the result goes to ``SCENE/calibration
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Optional, Sequence
 
-from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.cli.common import CliParser, output_file, run_cli
 from edge_landing.evaluation.scene import Scene
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.models import default_model_path
@@ -29,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ground truth counted below this, metres (default: the model's contract max_depth)")
     p.add_argument("--max-frames", type=int, default=None, help="use the first N frames only")
     p.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (default 2)")
+    p.add_no_progress()
     return p
 
 
@@ -40,9 +40,10 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
         raise InputError(f"--threads must be at least 1, got {args.threads}")
     scene = Scene(args.scene)
     scene.require(depth=True, purpose="depth-scale calibration (edge-calibrate)")
+    out = output_file(args.out if args.out else scene.path / "calibration.json", "the --out file")
     model = OnnxModel.load(args.model if args.model else default_model_path(), threads=args.threads)
-    out = Path(args.out) if args.out else scene.path / "edge_landing.calibration.json"
-    cal = calibrate_scene(scene, model, CalibrationConfig(args.min_depth, args.max_depth, args.max_frames))
+    cal = calibrate_scene(scene, model, CalibrationConfig(args.min_depth, args.max_depth, args.max_frames),
+                          show_progress=not args.no_progress)
     cal.save(out)
     print(f"scale {cal.scale:.4f} (MAD {cal.mad:.4f}, min {cal.min_ratio:.4f}, max {cal.max_ratio:.4f}) from "
           f"{cal.frames_used}/{cal.frames_total} frames; model {model.path.name} sha256 {cal.model_sha256[:12]}…")

@@ -9,10 +9,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from pathlib import Path
 from typing import Any, Callable, Optional, Sequence, Tuple
 
-from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.cli.common import CliParser, output_file, output_folder, run_cli
 from edge_landing.evaluation.evaluate import (
     EvalConfig,
     evaluate_scene,
@@ -59,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="HVO: one confusion matrix for the scene (default) or mean of per-image figures")
     p.add_argument("--max-frames", type=int, default=None, help="evaluate the first N frames only")
     p.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (default 2)")
+    p.add_no_progress()
     return p
 
 
@@ -192,36 +192,35 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     *model_paths, scene_path = args.paths
     if args.threads < 1:
         raise InputError(f"--threads must be at least 1, got {args.threads}")
+    # where the results go is settled before the work, so a bad path does not lose the figures afterwards
+    json_path = output_file(args.json, "the --json file") if args.json else None
+    figures_dir = output_folder(args.figures, "the --figures folder") if args.figures else None
     scene = Scene(scene_path)
     models = [OnnxModel.load(p, threads=args.threads) for p in model_paths]
     min_depth_m, max_depth_m, range_source = _depth_range(args, models)
     config = EvalConfig(min_depth_m, max_depth_m, Averaging.from_string(args.averaging),
                         Averaging.from_string(args.hvo_averaging), args.max_frames)
     scales, cal_files = _match_calibrations(args.calibration, models)
-    result = evaluate_scene(models, scene, config, scales, cal_files)
+    result = evaluate_scene(models, scene, config, scales, cal_files, show_progress=not args.no_progress)
     result["config"]["depth_range_source"] = range_source
     paper = paper_tables(args.paper) if args.paper else None
     print(format_tables(result, paper))
     for kind, needed, present in (("depth", "has_depth", scene.has_depth), ("hvo", "has_hvo", scene.has_hvo)):
         if not present and any(getattr(m.contract.task, needed) for m in models):
             print(f"note: scene {scene.path} has no {kind}/ ground truth; the models' {kind} output is not scored")
-    if args.json:
+    if json_path is not None:
         if paper is not None:
             result["paper"] = paper.to_json()
-        path = Path(args.json)
+        path = json_path
         try:
             path.write_text(json.dumps(_json_safe(result), indent=1))
         except OSError as exc:
             raise InputError(f"cannot write --json file {path}: {exc.strerror}") from None
         print(f"\nwrote {path}")
-    if args.figures:
+    if figures_dir is not None:
         import cv2
 
-        out_dir = Path(args.figures)
-        try:
-            out_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise InputError(f"cannot create --figures folder {out_dir}: {exc.strerror}") from None
+        out_dir = figures_dir
         frames = scene.frame_ids[: max(1, args.figure_frames)]
         grid = qualitative_grid(models, scene, frames)
         png = out_dir / f"qualitative_{scene.path.resolve().name}.png"

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
 
-from edge_landing.cli.common import CliParser, run_cli
-from edge_landing.runtime.core.errors import InputError, require_extra
+from edge_landing.cli.common import CliParser, output_file, run_cli
+from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.perception.contract import Task
 
 # (flag attribute, ArchSpec option name)
@@ -34,14 +34,14 @@ class ExportCliConfig:
     checkpoint: Optional[Path]
     options: tuple          # ((name, value), ...) given on the command line
     opset: int
-    quiet: bool
+    no_progress: bool
     trust_checkpoint: bool = False
 
 
 def build_parser() -> argparse.ArgumentParser:
     from edge_landing.export.zoo import arch_names
 
-    p = CliParser(prog="edge-export", description=__doc__.split("\n\n")[0],
+    p = CliParser(prog="edge-export", description=__doc__.split("\n\n")[0], extra="export",
                   formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--arch", required=True, choices=arch_names(), help="architecture of the zoo")
     p.add_argument("--task", choices=[t.value for t in Task], help="head to export (default: the arch's own)")
@@ -57,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                    help="any other build option of the arch (e.g. edgenet's channels=16); repeatable")
     p.add_argument("--opset", type=int, default=17, help="ONNX opset, at most 20 (default 17)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_no_progress()
     p.add_argument("--out", type=Path, required=True, help="output .onnx file")
     return p
 
@@ -68,7 +68,7 @@ def parse_config(argv: Optional[Sequence[str]]) -> ExportCliConfig:
     options += tuple(_parse_option(text) for text in args.option)
     return ExportCliConfig(arch=args.arch, task=Task.from_string(args.task) if args.task else None, out=args.out,
                            height=args.height, width=args.width, checkpoint=args.checkpoint, options=options,
-                           opset=args.opset, quiet=args.quiet, trust_checkpoint=args.trust_checkpoint)
+                           opset=args.opset, no_progress=args.no_progress, trust_checkpoint=args.trust_checkpoint)
 
 
 def _parse_option(text: str) -> tuple:
@@ -84,10 +84,9 @@ def _parse_option(text: str) -> tuple:
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
-    config = parse_config(argv)
-    # torch is imported only here so that --help stays fast, and without the [export] extra the user gets one line.
-    require_extra("torch", "export")
-    require_extra("onnx", "export")
+    config = parse_config(argv)   # without the [export] extra: one line (CliParser checks it after parsing)
+    output_file(config.out, "the --out file")
+    # torch is imported only here so that --help stays fast
     from edge_landing.export.onnx_export import ExportSettings, export_onnx
     from edge_landing.export.zoo import get_arch
 
@@ -96,7 +95,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     width = config.width if config.width is not None else spec.input_hw[1]
     report = export_onnx(spec, config.task, config.out, height, width, checkpoint=config.checkpoint,
                          options=dict(config.options),
-                         settings=ExportSettings(opset=config.opset, progress=not config.quiet,
+                         settings=ExportSettings(opset=config.opset, progress=not config.no_progress,
                                                  trust_checkpoint=config.trust_checkpoint))
     print(report.summary())
     return 0

@@ -15,8 +15,8 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from edge_landing.cli.common import CliParser, run_cli
-from edge_landing.runtime.core.errors import EdgeError, InputError, require_extra
+from edge_landing.cli.common import CliParser, output_file, run_cli
+from edge_landing.runtime.core.errors import EdgeError, InputError
 
 from .quantize import (
     CalibrationMethod,
@@ -34,7 +34,9 @@ class QuantizationRejected(EdgeError):
 
 def build_parser() -> argparse.ArgumentParser:
     t = Tolerance()
-    p = CliParser(prog="edge-quantize", description=__doc__.split("\n\n")[0])
+    # ONNX Runtime's quantizer edits the graph with the onnx package; tqdm draws the bars (no torch needed)
+    p = CliParser(prog="edge-quantize", description=__doc__.split("\n\n")[0], extra="export",
+                  extra_modules=("onnx", "tqdm"))
     p.add_argument("model", type=Path, help="FP32 .onnx with the model contract (from edge-export)")
     p.add_argument("--calib", type=Path, nargs="+", required=True,
                    help="scene folder(s): each one's first frames calibrate, the following ones are held out for the "
@@ -65,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-miou-drop", type=float, default=t.max_miou_drop)
     p.add_argument("--max-hprec-drop", type=float, default=t.max_hprec_drop)
     p.add_argument("--min-label-agreement", type=float, default=t.min_label_agreement)
-    p.add_argument("--no-progress", action="store_true")
+    p.add_no_progress()
     return p
 
 
@@ -102,7 +104,7 @@ def format_report(report: QuantReport) -> str:
 
 def main_body(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    require_extra("onnx", "export")     # ONNX Runtime's quantizer edits the graph with the onnx package
+    output_file(args.out, "the --out file")
     if args.threads is not None and args.threads < 1:
         raise InputError(f"--threads must be at least 1, got {args.threads}")
     tol = Tolerance(args.max_delta1_drop, args.max_absrel_increase, args.min_depth_agreement,

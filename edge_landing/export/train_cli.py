@@ -16,14 +16,14 @@ import argparse
 from pathlib import Path
 from typing import Sequence
 
-from edge_landing.cli.common import CliParser, run_cli
-from edge_landing.runtime.core.errors import InputError, require_extra
+from edge_landing.cli.common import CliParser, output_folder, run_cli
+from edge_landing.runtime.core.errors import InputError
 
 from .zoo import arch_names
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = CliParser(prog="edge-train", description=__doc__.split("\n\n")[0])
+    p = CliParser(prog="edge-train", description=__doc__.split("\n\n")[0], extra="export")
     p.add_argument("--arch", required=True, help=f"architecture: {', '.join(arch_names())}")
     p.add_argument("--task", default=None, help="depth, hvo or depth+hvo (default: the architecture's)")
     p.add_argument("--train", nargs="+", required=True, metavar="SCENE", help="training scene folder(s)")
@@ -51,13 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-augment", action="store_true", help="train without augmentation")
     p.add_argument("--no-export", action="store_true", help="skip the ONNX export at the end")
     p.add_argument("--overwrite", action="store_true", help="start afresh in an --out folder that holds a run")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_no_progress()
     return p
 
 
 def config_from_args(args: argparse.Namespace):
-    """The TrainConfig of the parsed arguments (torch is imported here: without the [export] extra, one line)."""
-    require_extra("torch", "export")
+    """The TrainConfig of the parsed arguments (torch is imported here; the parser has checked the extra)."""
     from .augment import AugmentConfig
     from .train import TrainConfig
 
@@ -84,8 +83,9 @@ def config_from_args(args: argparse.Namespace):
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(argv)   # without the [export] extra: one line (CliParser checks it)
     config = config_from_args(args)
+    output_folder(args.out, "the --out folder")
     from .train import train
 
     result = train(config)

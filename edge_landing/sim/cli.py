@@ -6,7 +6,7 @@ import math
 from pathlib import Path
 from typing import Optional, Sequence
 
-from edge_landing.cli.common import run_cli
+from edge_landing.cli.common import CliParser, run_cli
 from edge_landing.runtime.core.errors import InputError
 
 from .effects import EffectOverrides
@@ -14,16 +14,10 @@ from .generate import SimConfig, generate
 from .world import Style
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse that reports bad arguments as one InputError line (exit 2 through run_cli)."""
-
-    def error(self, message: str):
-        raise InputError(f"{message} (see edge-sim --help)")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="edge-sim", description="Render an AirSimNC-style synthetic bird's-eye-view scene folder "
-                "(RGB, planar depth, HVO labels, normals, poses) by ray casting procedural worlds.")
+    p = CliParser(prog="edge-sim", description="Render an AirSimNC-style synthetic bird's-eye-view scene folder "
+                  "(RGB, planar depth, HVO labels, normals, poses) by ray casting procedural worlds.",
+                  extra="sim", extra_modules=("embreex", "tqdm"))   # trimesh: not imported by the generator
     p.add_argument("out", type=Path, help="scene folder to write")
     p.add_argument("--frames", type=int, default=10, help="number of frames (default 10)")
     p.add_argument("--style", default="suburban", help="world style: suburban or urban (default suburban)")
@@ -48,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-normals", action="store_true", help="do not write normals/*.npy")
     p.add_argument("--shadow-stride", type=int, default=1, help="cast shadow rays every N pixels (faster, default 1)")
     p.add_argument("--overwrite", action="store_true", help="replace a scene already in OUT")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_no_progress()
     return p
 
 
@@ -79,17 +73,17 @@ def _overrides(args: argparse.Namespace) -> EffectOverrides:
 
 
 def config_from_args(argv: Optional[Sequence[str]]) -> tuple[SimConfig, bool]:
-    """(configuration, quiet) from command-line arguments; bad values raise InputError."""
+    """(configuration, no progress bar) from command-line arguments; bad values raise InputError."""
     args = build_parser().parse_args(argv)
     return SimConfig(out=args.out, frames=args.frames, style=Style.from_string(args.style), seed=args.seed,
                      width=args.width, height=args.height, hfov_deg=args.hfov_deg, effects=_overrides(args),
                      flight=args.flight, fps=args.fps, preview=args.preview, write_normals=not args.no_normals,
-                     shadow_stride=args.shadow_stride, overwrite=args.overwrite), args.quiet
+                     shadow_stride=args.shadow_stride, overwrite=args.overwrite), args.no_progress
 
 
 def _main(argv: Optional[Sequence[str]]) -> int:
-    config, quiet = config_from_args(argv)
-    out = generate(config, progress=not quiet)
+    config, no_progress = config_from_args(argv)
+    out = generate(config, progress=not no_progress)
     print(f"edge-sim: wrote {config.frames} {config.style} frame(s) to {out}")
     return 0
 
