@@ -24,9 +24,11 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 
-# What the drone side must never need: the [export] and [sim] extras' packages and the workstation parts.
+# What the drone side must never need: the [export] and [sim] extras' packages, the workstation parts, and
+# the command lines other than edge-run's.
 BLOCKED = ("torch", "onnx", "trimesh", "embreex",
-           "edge_landing.sim", "edge_landing.export", "edge_landing.benchmarks", "edge_landing.evaluation")
+           "edge_landing.sim", "edge_landing.export", "edge_landing.benchmarks", "edge_landing.evaluation",
+           "edge_landing.calibration", "edge_landing.cli.eval_cli")
 
 # Runs first in the child: installs the blocking finder, then executes the check's body. The body leaves
 # its findings in RESULT; the finder's log is added and everything is printed as one JSON line.
