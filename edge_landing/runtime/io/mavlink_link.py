@@ -120,7 +120,6 @@ class MavlinkLink:
         self._skip_reported = False
         self._last_telemetry_s = -math.inf
         self._last_request_s = -math.inf
-        self._badsig_seen = 0
 
     # -- life cycle -----------------------------------------------------------------------------------
     def start(self) -> MavlinkLink:
@@ -247,6 +246,8 @@ class MavlinkLink:
             return False
         if self._key is not None:
             conn.setup_signing(self._key, sign_outgoing=True)
+            # pymavlink drops unsigned and badly signed messages silently; this hook sees every one of them.
+            conn.mav.signing.allow_unsigned_callback = self._rejected_signature
         with self._lock:
             self._conn = conn
         return True
@@ -311,20 +312,15 @@ class MavlinkLink:
                 continue
             if msg is not None:
                 self._handle(msg)
-            self._check_signing(conn)
             self._report()
 
-    def _check_signing(self, conn: Any) -> None:
+    def _rejected_signature(self, _mav: Any, _msg_id: int) -> bool:
         """Say so when signed traffic is rejected: a wrong key otherwise drops all telemetry silently."""
-        if self._key is None or conn is None:
-            return
-        bad = int(conn.mav.signing.badsig_count)
-        if bad > self._badsig_seen:
-            if self._badsig_seen == 0:
-                log.warning("MAVLink signing: messages with a bad or missing signature are arriving and are dropped "
-                            "(wrong --mav-key?); no telemetry from them")
-            self.counts.add("bad_signature", bad - self._badsig_seen)
-            self._badsig_seen = bad
+        if self.counts["bad_signature"] == 0:
+            log.warning("MAVLink signing: messages with a bad or missing signature are arriving and are dropped "
+                        "(wrong --mav-key?); no telemetry from them")
+        self.counts.add("bad_signature")
+        return False
 
     def _heartbeat(self) -> None:
         m = self._mavutil.mavlink
