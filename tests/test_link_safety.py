@@ -59,7 +59,7 @@ def syn_dropping_listener():
     try:
         probe.connect(server.getsockname())
         hangs = False
-    except (socket.timeout, OSError):
+    except (TimeoutError, OSError):
         hangs = True
     probe.close()
     return server, fillers, hangs

@@ -1,7 +1,6 @@
 """The MAVLink link with real pymavlink peers on loopback UDP/TCP, and the telemetry buffer."""
 from __future__ import annotations
 
-import json
 import math
 import socket
 import threading

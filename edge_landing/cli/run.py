@@ -18,7 +18,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence, TextIO, Tuple, Union
+from typing import Any, Dict, Optional, Sequence, TextIO, Tuple, Union
 
 from edge_landing import __version__
 from edge_landing.cli.common import CliParser, run_cli
@@ -200,7 +200,7 @@ def camera_geometry(cfg: RunConfig, grabber: Grabber, first: Frame) -> Tuple[Int
     return intr, grabber.mount or Mount(pitch_rad=math.radians(cfg.mount_pitch_deg))
 
 
-def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> dict:
+def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> Dict[str, Any]:
     """The ``--log`` run record: what the frames are (sim world and seed, video, poses) and who consumed them."""
     style: Optional[str] = None
     seed: Optional[int] = None

@@ -98,7 +98,7 @@ def open_connection(mavutil: Any, url: str, source_system: int, source_component
 
 
 def _timed_tcp(mavutil: Any, host_port: str, timeout_s: float, **kwargs: Any) -> Any:
-    class TimedTcp(mavutil.mavtcp):  # type: ignore[misc, name-defined]
+    class TimedTcp(mavutil.mavtcp):  # type: ignore[misc]
         def do_connect(self) -> None:
             self.port = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             self.port.settimeout(timeout_s)

@@ -27,14 +27,17 @@ INSET_PX = 160
 def hvo_colours(rgb: np.ndarray, hvo_prob: Optional[np.ndarray], alpha: float = 0.35) -> np.ndarray:
     """Blend the argmax HVO class colours over the image."""
     if hvo_prob is None:
-        return rgb.copy()
+        plain: np.ndarray = rgb.copy()
+        return plain
     labels = np.argmax(hvo_prob, axis=2).astype(np.uint8)
     labels = cv2.resize(labels, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_NEAREST)
     colour = HVO_COLOURS[labels]
-    return cv2.addWeighted(rgb, 1.0 - alpha, colour, alpha, 0.0)
+    out: np.ndarray = cv2.addWeighted(rgb, 1.0 - alpha, colour, alpha, 0.0)
+    return out
 
 
-def grid_inset(grid: Optional[GridView], target: Target, state: Optional[VehicleState], size_px: int = INSET_PX) -> Optional[np.ndarray]:
+def grid_inset(grid: Optional[GridView], target: Target, state: Optional[VehicleState],
+               size_px: int = INSET_PX) -> Optional[np.ndarray]:
     """Top-down grid (north up): landable green, observed but not landable red, unobserved grey; target ring."""
     if grid is None:
         return None
@@ -60,7 +63,8 @@ def _target_ne(grid: GridView, target: Target, state: Optional[VehicleState]) ->
     if grid.frame == "ned":
         return None if target.position_ned_m is None else target.position_ned_m[:2]
     att = state.attitude.ned_from_body() if state is not None else np.eye(3)
-    return (att @ np.asarray(target.position_body_frd_m))[:2]
+    out: np.ndarray = (att @ np.asarray(target.position_body_frd_m))[:2]
+    return out
 
 
 def draw_target(img: np.ndarray, target: Target, intrinsics: Intrinsics, mount: Mount) -> None:
@@ -106,7 +110,7 @@ class OverlayRecorder:
             img = frame.rgb
         if self._writer is None:
             h, w = img.shape[:2]
-            self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
+            self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter.fourcc(*"mp4v"), self.fps, (w, h))
             if not self._writer.isOpened():
                 log.error("cannot open %s for writing; recording is off", self.path)
                 self._writer = _NullWriter()

@@ -75,7 +75,7 @@ class SourceConfig:
     reopen_max_s: float = 5.0
 
     @staticmethod
-    def from_string(camera: str, **kwargs) -> SourceConfig:
+    def from_string(camera: str, **kwargs: Any) -> SourceConfig:
         return SourceConfig(camera=camera, kind=SourceKind.from_string(camera), **kwargs)
 
 
@@ -126,7 +126,7 @@ class VideoReader(Reader):
         self.name = config.camera
         self._expected_frames = 0
         self._read = 0
-        target = config.camera
+        target: int | str = config.camera
         if config.kind is SourceKind.DEVICE:
             target = int(config.camera) if config.camera.isdigit() else config.camera
             node = f"/dev/video{target}" if isinstance(target, int) else target
@@ -141,14 +141,14 @@ class VideoReader(Reader):
             if config.fps:
                 self.cap.set(cv2.CAP_PROP_FPS, config.fps)
         elif config.kind is SourceKind.FILE:
-            if not Path(target).is_file():
+            if not Path(config.camera).is_file():
                 raise InputError(f"video file {target} does not exist; expected a video (mp4, avi, ...), an image "
                                  f"folder or glob, a /dev/video device, an rtsp:// URL or 'sim'")
-            self.cap = cv2.VideoCapture(target)
+            self.cap = cv2.VideoCapture(config.camera)
             self._expected_frames = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         else:
-            api = cv2.CAP_GSTREAMER if "!" in target else cv2.CAP_FFMPEG
-            self.cap = cv2.VideoCapture(target, api)
+            api = cv2.CAP_GSTREAMER if "!" in config.camera else cv2.CAP_FFMPEG
+            self.cap = cv2.VideoCapture(config.camera, api)
         if not self.cap.isOpened():
             what = {SourceKind.DEVICE: "camera device", SourceKind.FILE: "video file",
                     SourceKind.STREAM: "stream"}[config.kind]
@@ -251,7 +251,8 @@ class SimReader(Reader):
                 return None  # the flight is over: end the run cleanly
             self._frames_left -= 1
         rgb, _pose, self.last_state = self.camera.read()
-        return rgb
+        out: np.ndarray = rgb
+        return out
 
     def close(self) -> None:
         self.camera.close()
@@ -352,8 +353,8 @@ class Grabber:
     def next(self, timeout_s: float = 1.0) -> Optional[Frame]:
         """The newest frame not yet taken, or None after ``timeout_s`` or at the end."""
         if self._front is not None:
-            frame, self._front = self._front, None
-            return frame
+            front, self._front = self._front, None
+            return front
         with self._cond:
             if self._slot is None and not self.ended:
                 self._cond.wait(timeout_s)
@@ -381,17 +382,19 @@ class Grabber:
                     backoff_s = min(backoff_s * 2.0, self.config.reopen_max_s)
                     continue
                 backoff_s = self.config.reopen_min_s
+            reader = self.reader
+            assert reader is not None  # opened just above
             try:
-                rgb = self.reader.read()
+                rgb = reader.read()
             except Exception as exc:  # a mid-run camera fault never stops the loop: reopen with back-off
                 self.faults += 1
                 log.warning("camera %s failed (%s); reopening with back-off", self.config.camera, exc)
-                self.reader.close()
+                reader.close()
                 self.reader = None
                 continue
             if rgb is None:
                 if self.config.loop and not self.config.kind.live:
-                    self.reader.close()
+                    reader.close()
                     self.reader = None
                     continue
                 break
@@ -399,11 +402,11 @@ class Grabber:
                 # Recorded input has no real capture time: stamp it when the pipeline can take it, so a slow
                 # model does not make every played-back frame "stale".
                 self._wait_for_free_slot()
-            problem = self.reader.problem
+            problem = reader.problem
             if problem:
                 log.warning("frame %d of %s is invalid: %s", self._next_id, self.config.camera, problem)
             frame = Frame(self._next_id, time.monotonic(), rgb, self.config.camera, valid=not problem, reason=problem)
-            state = self.reader.last_state
+            state = reader.last_state
             if state is not None and self.telemetry is not None:
                 self.telemetry.add_state(state, frame.capture_time_s)
             self._publish(frame)

@@ -244,7 +244,8 @@ class TelemetryBuffer:
         a = state.attitude
         self.add_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad, arrival_s=local_time_s)
         if state.position_ned_m is not None:
-            self.add_position(*(float(v) for v in state.position_ned_m), arrival_s=local_time_s)
+            n, e, d = (float(v) for v in state.position_ned_m)
+            self.add_position(n, e, d, arrival_s=local_time_s)
         if state.agl_m is not None:
             self.add_relative_alt(float(state.agl_m), arrival_s=local_time_s)
 

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Dict, Optional
+from typing import Any, Dict, List, Optional
 
 from edge_landing.runtime.core.messages import Prediction, Target, VehicleState
 
@@ -29,7 +29,7 @@ def decision_record(target: Target, pred: Prediction, state: Optional[VehicleSta
                     scale_source: str, level_assumed: bool = False) -> Dict[str, Any]:
     """One ``--log`` line. ``sent`` is true only when the target really left the socket; ``not_sent_because``
     says why not; ``level_assumed`` marks an offline run without telemetry (level flight assumed)."""
-    def vec(v: Optional[Any]) -> Optional[list]:
+    def vec(v: Optional[Any]) -> Optional[List[float]]:
         return None if v is None else [round(float(x), 4) for x in v]
 
     return {"frame": target.frame_id, "capture_time_s": round(target.capture_time_s, 6), "valid": target.valid,
