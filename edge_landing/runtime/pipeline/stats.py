@@ -1,7 +1,8 @@
 """Bounded per-stage timing statistics and the run summary (ARCHITECTURE.md §9).
 
 Memory is bounded in time: each stage keeps an exact count and sum plus the last ``window`` durations
-(a rolling window for percentiles), so a day-long flight uses the same memory as a minute.
+(a rolling window for percentiles) in a numpy ring allocated and written once at start, so a day-long
+flight uses the same memory as a minute (a deque of Python floats would grow for the first 11 minutes).
 """
 from __future__ import annotations
 
@@ -17,6 +18,25 @@ SUMMARY_WINDOW = 20_000   # ~11 min at 30 fps: the summary's percentiles are ove
 RECENT_WINDOW = 512
 
 
+class _Ring:
+    """The last ``size`` values, in a preallocated float64 array (pages touched up front: RSS does not creep)."""
+
+    def __init__(self, size: int):
+        self._a = np.full(size, np.nan)
+        self._n = 0
+
+    def append(self, value: float) -> None:
+        self._a[self._n % self._a.shape[0]] = value
+        self._n += 1
+
+    def values(self) -> np.ndarray:
+        out: np.ndarray = self._a[:min(self._n, self._a.shape[0])].copy()
+        return out
+
+    def __len__(self) -> int:
+        return min(self._n, self._a.shape[0])
+
+
 class StageTimes:
     """Durations (seconds) of every stage: a bounded window for the summary, the last second for the status line.
 
@@ -25,7 +45,7 @@ class StageTimes:
 
     def __init__(self, window: int = SUMMARY_WINDOW):
         self._window = window
-        self._all: Dict[str, Deque[float]] = {s: deque(maxlen=window) for s in STAGES}
+        self._all: Dict[str, _Ring] = {s: _Ring(window) for s in STAGES}
         self.recent: Dict[str, Deque[float]] = {s: deque(maxlen=RECENT_WINDOW) for s in STAGES}
         self._count: Dict[str, int] = {s: 0 for s in STAGES}
         self._sum: Dict[str, float] = {s: 0.0 for s in STAGES}
@@ -33,7 +53,9 @@ class StageTimes:
 
     def add(self, stage: str, seconds: float) -> None:
         with self._lock:
-            self._all.setdefault(stage, deque(maxlen=self._window)).append(seconds)
+            if stage not in self._all:
+                self._all[stage] = _Ring(self._window)
+            self._all[stage].append(seconds)
             self.recent.setdefault(stage, deque(maxlen=RECENT_WINDOW)).append(seconds)
             self._count[stage] = self._count.get(stage, 0) + 1
             self._sum[stage] = self._sum.get(stage, 0.0) + seconds
@@ -42,7 +64,7 @@ class StageTimes:
     def all(self) -> Dict[str, List[float]]:
         """The summary window of every stage (a copy)."""
         with self._lock:
-            return {k: list(v) for k, v in self._all.items()}
+            return {k: v.values().tolist() for k, v in self._all.items()}
 
     def count(self, stage: str) -> int:
         with self._lock:
@@ -54,8 +76,12 @@ class StageTimes:
 
     def percentiles_ms(self, stage: str, qs: Sequence[float] = (50, 99), recent: bool = False) -> List[float]:
         with self._lock:
-            values = list(self.recent.get(stage, ())) if recent else list(self._all.get(stage, ()))
-        if not values:
+            if recent:
+                values = np.asarray(self.recent.get(stage, ()), dtype=np.float64)
+            else:
+                ring = self._all.get(stage)
+                values = ring.values() if ring is not None else np.empty(0)
+        if not values.size:
             return [float("nan")] * len(qs)
         return [float(v) * 1e3 for v in np.percentile(values, qs)]
 
