@@ -58,8 +58,10 @@ def assert_healthy_phase_sent(fake: FakeAutopilot, n: int = 5) -> list:
     return good
 
 
-def test_silent_autopilot_means_no_target_and_it_is_announced(assets, tmp_path):
+def test_silent_autopilot_means_no_target_and_it_is_announced(assets, tmp_path, capsys):
     fake, decisions, _ = run_against(assets, tmp_path, healthy_then(lambda f, t: None))
+    out = capsys.readouterr().out
+    assert "telemetry STALE" in out and "target: none (held: telemetry stale" in out  # the status line says why
     assert_healthy_phase_sent(fake)
     assert fake.targets_between(SWITCH_S + GRACE_S, 1e9) == []
     assert any("telemetry lost" in text for text in fake.texts())
