@@ -147,7 +147,7 @@ def test_sim_source_without_the_extra_names_it(monkeypatch):
 
     from edge_landing.runtime.core.errors import MissingExtraError
 
-    monkeypatch.setitem(sys.modules, "sim", None)  # as if the [sim] extra were not installed
+    monkeypatch.setitem(sys.modules, "edge_landing.sim", None)  # as if the [sim] extra were not installed
     with pytest.raises(MissingExtraError, match=r"edge-landing\[sim\]"):
         Grabber(SourceConfig.from_string("sim")).start()
 
