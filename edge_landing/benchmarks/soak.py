@@ -28,7 +28,8 @@ import numpy as np
 
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
-from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink, load_mavutil
+from edge_landing.runtime.io.mavlink_conn import load_mavutil
+from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
 from edge_landing.runtime.io.sources import Grabber, Reader, SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.perception.inference import OnnxModel
@@ -213,14 +214,13 @@ def soak(cfg: SoakConfig, out: Any = sys.stdout) -> Dict[str, Any]:
         sink.close()
         tmp.cleanup()
     window_s = min(cfg.window_min * 60.0, 0.8 * cfg.minutes * 60.0)
-    result = {"minutes": cfg.minutes, "frames": summary.frames, "fps": round(summary.images_per_s, 2),
+    g = growth(samples, window_s) if len(samples) > 1 else None
+    verdict = "FLAT" if g and g["end_minus_start_b"] < 2**20 and g["max_minus_min_b"] < 2**20 else "GROWS"
+    result: Dict[str, Any] = {"minutes": cfg.minutes, "frames": summary.frames, "fps": round(summary.images_per_s, 2),
               "targets_sent": summary.sent, "targets_received": fake.targets,
               "rss_start_mib": round(samples[0][1] / 2**20, 2) if samples else None,
               "rss_end_mib": round(samples[-1][1] / 2**20, 2) if samples else None,
-              "growth": growth(samples, window_s) if len(samples) > 1 else None}
-    g = result["growth"]
-    verdict = "FLAT" if g and g["end_minus_start_b"] < 2**20 and g["max_minus_min_b"] < 2**20 else "GROWS"
-    result["verdict"] = verdict
+              "growth": g, "verdict": verdict}
     print(f"{summary.frames} frames at {result['fps']} fps, {summary.sent} targets sent; resident memory over the last "
           f"{window_s / 60:.1f} min: end-start {g['end_minus_start_b'] / 1024 if g else float('nan'):.0f} KiB, "
           f"max-min {g['max_minus_min_b'] / 1024 if g else float('nan'):.0f} KiB -> {verdict} (bar: < 1 MiB)",

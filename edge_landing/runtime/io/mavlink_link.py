@@ -39,6 +39,8 @@ from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: 
 )
 from edge_landing.runtime.io.telemetry import RANGEFINDER_DOWN, TelemetryBuffer
 
+__all__ = ["Autopilot", "LinkConfig", "LinkCounts", "MavlinkLink", "check_url", "load_mavutil", "load_signing_key",
+           "NET_PREFIXES", "FRAME_BODY_FRD", "FRAME_LOCAL_NED", "TELEMETRY_MESSAGES"]
 log = logging.getLogger(__name__)
 FRAME_LOCAL_NED, FRAME_BODY_FRD = 1, 12
 TARGET_TYPE_VISION_OTHER = 3
