@@ -152,3 +152,12 @@ def wait_for(predicate, timeout_s: float = 10.0) -> bool:
 
 def last(items: list) -> Optional[object]:
     return items[-1] if items else None
+
+
+def read_decisions(path) -> list:
+    """The per-frame decision lines of an ``edge-run --log`` file (the first line is the run record)."""
+    import json
+
+    lines = [json.loads(line) for line in Path(path).read_text().splitlines()]
+    assert lines and "run" in lines[0], "the first --log line must be the run record"
+    return lines[1:]

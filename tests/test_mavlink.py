@@ -1,11 +1,11 @@
 """The MAVLink link with real pymavlink peers on loopback UDP/TCP, and the telemetry buffer."""
 from __future__ import annotations
 
-import json
 import math
 import socket
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -27,6 +27,7 @@ from tests.run_helpers import (
     flat_ground_model,
     free_tcp_port,
     free_udp_port,
+    read_decisions,
     wait_for,
     write_video,
 )
@@ -47,7 +48,8 @@ def edge_run(assets, *extra):
 
 def test_ardupilot_landing_target_and_heartbeat_decoded_by_a_pymavlink_peer(assets):
     port = free_udp_port()
-    with LoopbackAutopilot(port) as peer:
+    # The autopilot sends telemetry: without fresh telemetry no target may leave (ARCHITECTURE.md §12).
+    with LoopbackAutopilot(port, telemetry=True) as peer:
         assert edge_run(assets, "--mav", f"udpout:127.0.0.1:{port}") == 0
         wait_for(lambda: len(peer.of_type("LANDING_TARGET")) >= 8, 3.0)
     targets, beats = peer.of_type("LANDING_TARGET"), peer.of_type("HEARTBEAT")
@@ -89,7 +91,7 @@ def test_px4_local_ned_target_agrees_with_the_autopilot_telemetry(assets, yaw_de
         assert rel[2] == pytest.approx(AGL_M, abs=0.3)             # on the ground: local down = 0
         heading = math.degrees(math.atan2(rel[1], rel[0]))
         assert abs((heading - yaw_deg + 180) % 360 - 180) < 15     # ahead of the nose, whichever way it points
-    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    decisions = read_decisions(log_path)
     assert any(d["telemetry"] and d["agl_m"] == pytest.approx(AGL_M, abs=0.01) for d in decisions)
 
 
@@ -101,7 +103,7 @@ def test_px4_without_local_position_sends_nothing_and_says_why(assets):
                         "--log", str(log_path)) == 0
         time.sleep(0.2)
     assert not peer.of_type("LANDING_TARGET") and peer.of_type("HEARTBEAT")
-    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    decisions = read_decisions(log_path)
     assert decisions and all("LOCAL_POSITION_NED" in d["not_sent_because"] for d in decisions if d["valid"])
 
 
@@ -115,7 +117,8 @@ def test_nobody_listening_then_peer_appears_sending_resumes():
             link.send_target(target, None)
             time.sleep(0.01)
         assert link.counts["send_errors"] > 0 and not link.up    # 'port unreachable' seen, loop not stopped
-        with LoopbackAutopilot(port) as peer:
+        with LoopbackAutopilot(port, telemetry=True) as peer:  # "up" means the autopilot is heard
+            target = replace(target, capture_time_s=time.monotonic())  # older than 1 s would be dropped
             assert wait_for(lambda: (link.send_target(target, None), bool(peer.of_type("LANDING_TARGET")))[1], 5.0)
             assert wait_for(lambda: link.up, 3.0)
     finally:
@@ -157,7 +160,7 @@ def test_signed_messages_with_a_key_file(assets, tmp_path):
     key_file = tmp_path / "mav.key"
     key_file.write_bytes(key)
     port = free_udp_port()
-    with LoopbackAutopilot(port) as peer:
+    with LoopbackAutopilot(port, telemetry=True) as peer:
         peer.conn.setup_signing(key, sign_outgoing=True)
         assert edge_run(assets, "--max-frames", "3", "--mav", f"udpout:127.0.0.1:{port}", "--mav-key", str(key_file)) == 0
         wait_for(lambda: len(peer.of_type("LANDING_TARGET")) >= 3, 3.0)
@@ -218,12 +221,17 @@ def test_link_receives_telemetry_from_an_autopilot():
 def test_udpin_link_answers_a_ground_station_that_connects(assets):
     port = free_udp_port()
     mavutil = load_mavutil()
-    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
     got, stop = [], threading.Event()
 
     def ground_station():
+        t0 = time.monotonic()
         while not stop.is_set():
-            gcs.mav.heartbeat_send(6, 8, 0, 0, 0)  # MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID
+            # An autopilot that connects to edge-run's udpin port (quadrotor, ArduPilot) with its telemetry.
+            boot_ms = int((time.monotonic() - t0) * 1000) + 1
+            gcs.mav.heartbeat_send(2, 3, 0, 0, 0)
+            gcs.mav.attitude_send(boot_ms, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            gcs.mav.global_position_int_send(boot_ms, 0, 0, 0, int(AGL_M * 1000), 0, 0, 0, 0)
             msg = gcs.recv_match(blocking=True, timeout=0.05)
             if msg is not None:
                 got.append(msg)
@@ -251,7 +259,7 @@ def test_sim_flight_video_to_landing_targets(assets, tmp_path):
         assert main(["--camera", str(video), "--model", assets["model"], "--mav", f"udpout:127.0.0.1:{port}",
                      "--log", str(log_path)]) == 0
         wait_for(lambda: len(peer.of_type("LANDING_TARGET")) >= 6, 3.0)
-    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    decisions = read_decisions(log_path)
     assert len(decisions) == 6
     targets = peer.of_type("LANDING_TARGET")
     assert len(targets) == sum(d["sent"] for d in decisions) == 6
@@ -265,7 +273,7 @@ def test_in_flight_altitude_scale_from_autopilot_telemetry(assets, tmp_path):
     with LoopbackAutopilot(port, telemetry=True, position_ned=(0.0, 0.0, -AGL_M)) as ap:
         assert main(["--camera", assets["video"], "--loop", "--duration", "2.5", "--model", str(half),
                      "--mav", f"udpout:127.0.0.1:{port}", "--log", str(log_path)]) == 0
-    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    decisions = read_decisions(log_path)
     scaled = [d for d in decisions if d["scale_source"].startswith("altitude")]
     assert scaled and all(d["scale"] == pytest.approx(2.0, rel=0.02) for d in scaled)
     late = [t for t in ap.of_type("LANDING_TARGET")][-3:]

@@ -19,6 +19,14 @@ from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink, load_m
 from edge_landing.runtime.io.telemetry import TelemetryBuffer  # noqa: E402
 
 
+class _FdWriter:
+    def __init__(self, fd: int):
+        self.fd = fd
+
+    def write(self, buf: bytes) -> None:
+        os.write(self.fd, buf)
+
+
 def _read_messages(fd: int, parser, seconds: float) -> list:
     got, end = [], time.monotonic() + seconds
     while time.monotonic() < end:
@@ -39,6 +47,13 @@ def test_landing_target_and_heartbeat_over_a_serial_port():
         link = MavlinkLink(LinkConfig(f"{os.ttyname(slave)},115200"), TelemetryBuffer()).start()
         mavutil = load_mavutil()
         parser = mavutil.mavlink.MAVLink(None)
+        # The autopilot's side speaks first (a HEARTBEAT): a target leaves only while the autopilot is heard.
+        autopilot = mavutil.mavlink.MAVLink(_FdWriter(master), srcSystem=1, srcComponent=1)
+        end = time.monotonic() + 5.0
+        while link.peer is None and time.monotonic() < end:
+            autopilot.heartbeat_send(2, 3, 0, 0, 4)  # quadrotor, ArduPilot
+            time.sleep(0.1)
+        assert link.peer == (1, 1)
         target = Target(0, time.monotonic(), True, position_body_frd_m=np.array([6.0, -1.0, 12.0]),
                         angle_x_rad=-0.07, angle_y_rad=0.44, size_x_rad=0.2, size_y_rad=0.2, clearance_m=3.0)
         try:

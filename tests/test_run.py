@@ -18,7 +18,7 @@ from edge_landing.runtime.perception.calibration_file import SceneCalibration
 from edge_landing.runtime.perception.contract import Task
 from edge_landing.runtime.perception.inference import file_sha256
 from tests.helpers import tiny_onnx_model
-from tests.run_helpers import flat_ground_model, write_video
+from tests.run_helpers import flat_ground_model, read_decisions, write_video
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -36,7 +36,7 @@ def test_video_run_logs_every_decision_records_overlay_and_prints_summary(assets
                  "--record", str(rec), "--vehicle-radius", "0.5", "--margin", "0.5"]) == 0
     out = capsys.readouterr().out
     assert "pipeline images/s" in out and "model-only images/s" in out and "stopped by end of input" in out
-    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    decisions = read_decisions(log_path)
     assert [d["frame"] for d in decisions] == list(range(10))
     assert all(d["valid"] and d["reason"] == "ok" and d["clearance_m"] >= 1.0 for d in decisions)
     assert all(d["body_frd_m"][0] > 0 and abs(d["body_frd_m"][2] - 10.0) < 0.3 for d in decisions)
@@ -53,7 +53,7 @@ def test_max_frames_and_calibration_scale(assets, tmp_path):
     log_path = tmp_path / "t.jsonl"
     assert main(["--camera", assets["video"], "--model", str(model), "--calibration", str(cal_path),
                  "--max-frames", "4", "--log", str(log_path)]) == 0
-    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    decisions = read_decisions(log_path)
     assert len(decisions) == 4
     assert all(d["scale"] == 2.0 and d["scale_source"] == "calibration" for d in decisions)
     assert all(abs(d["body_frd_m"][2] - 10.0) < 0.3 for d in decisions)
@@ -65,7 +65,7 @@ def test_depth_and_hvo_model_pair(assets, tmp_path):
     log_path = tmp_path / "t.jsonl"
     assert main(["--camera", assets["video"], "--depth-model", str(depth), "--hvo-model", str(hvo),
                  "--max-frames", "3", "--log", str(log_path)]) == 0
-    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    decisions = read_decisions(log_path)
     assert len(decisions) == 3 and all(d["reason"] for d in decisions)  # a decision and its reason, every frame
 
 
@@ -120,6 +120,8 @@ def test_sigint_exits_cleanly_with_summary_and_flushed_log(assets, tmp_path):
     assert proc.returncode == 0, err
     assert "stopped by Ctrl-C" in out and "pipeline images/s" in out
     lines = log_path.read_text().splitlines()
+    assert "run" in json.loads(lines[0])  # the run record, then one line per frame
+    lines = lines[1:]
     assert len(lines) >= 5 and all(json.loads(line)["frame"] >= 0 for line in lines)  # every line complete
 
 
@@ -129,7 +131,7 @@ def test_default_run_flies_the_synthetic_flight_with_the_shipped_model(tmp_path,
     assert main(["--max-frames", "6", "--log", str(log_path)]) == 0  # no camera, no model: sim + edgenet
     out = capsys.readouterr().out
     assert "edge-run: sim -> edgenet" in out and "pipeline images/s" in out
-    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    decisions = read_decisions(log_path)
     assert len(decisions) == 6 and all(d["telemetry"] and d["agl_m"] > 0 for d in decisions)
 
 
@@ -142,7 +144,7 @@ def test_poses_replay_gives_ned_targets_for_a_recorded_flight(assets, tmp_path):
     log_path = tmp_path / "t.jsonl"
     assert main(["--camera", assets["video"], "--model", assets["model"], "--poses", str(poses),
                  "--vehicle-radius", "0.5", "--margin", "0.5", "--log", str(log_path)]) == 0
-    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    decisions = read_decisions(log_path)
     assert len(decisions) == 10 and all(d["valid"] for d in decisions)
     for d in decisions:
         north, east, down = d["ned_m"]

@@ -115,7 +115,7 @@ def pipeline_once(inference, frames, intrinsics, mount, overlap: bool, sink_port
                       telemetry=telemetry).start()
     fuser = LandingFuser(FusionConfig(), intrinsics, mount)
     scale = ScaleStage(None, AltitudeScaleEstimator(), intrinsics, mount)
-    pipe = Pipeline(grabber, inference, scale, fuser.update, telemetry, link,
+    pipe = Pipeline(grabber, inference, scale, fuser.fuse, telemetry, link,
                     PipelineOptions(status_period_s=1e9, overlap=overlap), io.StringIO(), None, io.StringIO())
     try:
         summary = pipe.run()

@@ -10,27 +10,34 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import logging
 import math
 import signal
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Any, Dict, Optional, Sequence, TextIO, Tuple, Union
 
+from edge_landing import __version__
 from edge_landing.cli.common import CliParser, run_cli
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.messages import Frame
 from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink
 from edge_landing.runtime.io.sources import Grabber, SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.pipeline import (
+    ContinuityConfig,
+    FrameCheck,
     JointInference,
     PairInference,
     Pipeline,
     PipelineOptions,
     ScaleStage,
+    run_record,
 )
 
 log = logging.getLogger("edge-run")
@@ -66,6 +73,9 @@ class RunConfig:
     mav_sysid: int = 1
     mav_compid: int = 191
     mav_key: Optional[str] = None
+    mav_target_system: Optional[int] = None  # take telemetry only from this system id
+    hold_s: float = 20.0                     # a committed spot is re-sent from memory at most this long
+    telemetry_wait_s: float = 5.0            # with --mav, wait this long for telemetry before the first frame
     vehicle_radius_m: float = 1.0
     margin_m: float = 1.0
     threads: int = 2
@@ -81,7 +91,12 @@ class RunConfig:
     # heights, so the model's frame-to-frame depth scale error (~1 % at 60-80 m) does not break it.
     grid: GridMode = GridMode.NED
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
+        if self.hold_s < 0:
+            raise InputError(f"--hold must be >= 0 seconds, got {self.hold_s}")
+        if self.mav and not self.altitude_scale and not self.calibration:
+            raise InputError("--no-altitude-scale with --mav needs --calibration: without either there is no metric "
+                             "depth scale, so no target would ever be sent")
         if self.threads < 1:
             raise InputError(f"--threads must be at least 1, got {self.threads}")
         if self.vehicle_radius_m <= 0 or self.margin_m < 0:
@@ -140,6 +155,10 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--mav-sysid", type=int, default=1)
     k.add_argument("--mav-compid", type=int, default=191)
     k.add_argument("--mav-key", help="MAVLink 2 signing key file (32 bytes, or 64 hex characters)")
+    k.add_argument("--mav-target-system", type=int, default=None, help="take telemetry only from this autopilot "
+                   "system id (default: the first autopilot HEARTBEAT heard); other senders are ignored")
+    k.add_argument("--hold", type=float, default=20.0, help="re-send a committed landing spot from memory for at "
+                   "most this many seconds without a confirming frame (it is out of view during the vertical descent)")
     o = p.add_argument_group("output")
     o.add_argument("--record", help="overlay video (.mp4)")
     o.add_argument("--log", dest="log_path", help="every decision as JSON lines")
@@ -154,16 +173,17 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      loop=a.loop, poses=a.poses, model=a.model, depth_model=a.depth_model, hvo_model=a.hvo_model, int8=a.int8,
                      calibration=a.calibration, altitude_scale=not a.no_altitude_scale, mav=a.mav,
                      autopilot=Autopilot.from_string(a.autopilot), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
-                     mav_key=a.mav_key, vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
+                     mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
+                     vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
                      hfov_deg=a.hfov, mount_pitch_deg=a.mount_pitch, record=a.record, log_path=a.log_path,
                      max_frames=a.max_frames, duration_s=a.duration, overlap=not a.sequential,
                      grid=GridMode.from_string(a.grid))
 
 
-def load_inference(cfg: RunConfig):
+def load_inference(cfg: RunConfig) -> Union[JointInference, PairInference]:
     from edge_landing.runtime.perception.inference import OnnxModel
 
-    if cfg.depth_model:
+    if cfg.depth_model and cfg.hvo_model:
         return PairInference(OnnxModel.load(cfg.depth_model, cfg.threads), OnnxModel.load(cfg.hvo_model, cfg.threads))
     if cfg.model:
         return JointInference(OnnxModel.load(cfg.model, cfg.threads))
@@ -172,17 +192,42 @@ def load_inference(cfg: RunConfig):
     return JointInference(OnnxModel.load(default_model_path(int8=cfg.int8), cfg.threads))
 
 
-def camera_geometry(cfg: RunConfig, grabber: Grabber, first_rgb) -> tuple:
+def camera_geometry(cfg: RunConfig, grabber: Grabber, first: Frame) -> Tuple[Intrinsics, Mount]:
     """Intrinsics at the frame size and the mount: from the synthetic camera when it knows them, else flags."""
-    reader = grabber.reader
-    intr = getattr(reader, "intrinsics", None)
-    mount = getattr(reader, "mount", None)
-    h, w = first_rgb.shape[:2]
+    h, w = first.rgb.shape[:2]
+    intr = grabber.intrinsics
     intr = intr.scaled(w, h) if intr is not None else Intrinsics.from_hfov(w, h, math.radians(cfg.hfov_deg))
-    return intr, mount or Mount(pitch_rad=math.radians(cfg.mount_pitch_deg))
+    return intr, grabber.mount or Mount(pitch_rad=math.radians(cfg.mount_pitch_deg))
 
 
-def run(cfg: RunConfig, out=None) -> int:
+def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> Dict[str, Any]:
+    """The ``--log`` run record: what the frames are (sim world and seed, video, poses) and who consumed them."""
+    style: Optional[str] = None
+    seed: Optional[int] = None
+    if kind is SourceKind.SIM:
+        style, seed = "suburban", 0
+        for part in cfg.camera.split(":")[1:]:
+            if part.isdigit():
+                seed = int(part)
+            elif part:
+                style = part
+    return run_record(__version__, cfg.camera, kind.value, style, seed, cfg.poses, model_name,
+                      cfg.autopilot.value if cfg.mav else None)
+
+
+def wait_for_telemetry(telemetry: TelemetryBuffer, wait_s: float, out: TextIO) -> None:
+    """Give the autopilot a moment before the first frame: without telemetry no target may leave anyway."""
+    print(f"edge-run: waiting up to {wait_s:g} s for autopilot telemetry", file=out, flush=True)
+    end = time.monotonic() + wait_s
+    while time.monotonic() < end:
+        if telemetry.lookup(time.monotonic()).fresh:
+            return
+        time.sleep(0.05)
+    log.warning("no fresh autopilot telemetry after %g s (%s): frames are processed, no target is sent until it "
+                "arrives", wait_s, telemetry.lookup(time.monotonic()).reason)
+
+
+def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
     out = out or sys.stdout
     from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
     from edge_landing.runtime.io.overlay import OverlayRecorder
@@ -192,44 +237,53 @@ def run(cfg: RunConfig, out=None) -> int:
     )
 
     inference = load_inference(cfg)
-    models = [getattr(inference, n) for n in ("model", "depth_model") if hasattr(inference, n)]
-    calibration = load_calibration(cfg.calibration, models[0].sha256) if cfg.calibration else None
+    calibration = load_calibration(cfg.calibration, inference.models[0].sha256) if cfg.calibration else None
     src = SourceConfig(camera=cfg.camera, kind=SourceKind.from_string(cfg.camera), width=cfg.camera_width,
                        height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "")
     fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m)
     telemetry = TelemetryBuffer()
+    own_telemetry = src.kind is SourceKind.SIM or bool(cfg.poses)
     link = None
     with contextlib.ExitStack() as stack:
         if cfg.mav:
             # The simulator's (or a replayed flight's) telemetry matches its frames; an autopilot's would
             # describe another flight.
             link_telemetry = telemetry
-            if src.kind is SourceKind.SIM or cfg.poses:
+            if own_telemetry:
                 log.info("%s: using its own telemetry; the autopilot's is not used",
                          "sim camera" if src.kind is SourceKind.SIM else "--poses replay")
                 link_telemetry = TelemetryBuffer()
-            link = MavlinkLink(LinkConfig(cfg.mav, cfg.autopilot, cfg.mav_sysid, cfg.mav_compid, cfg.mav_key),
-                               link_telemetry).start()
+            link = MavlinkLink(LinkConfig(cfg.mav, cfg.autopilot, cfg.mav_sysid, cfg.mav_compid, cfg.mav_key,
+                                          target_system=cfg.mav_target_system), link_telemetry).start()
             stack.callback(link.stop)
+            if not own_telemetry and cfg.telemetry_wait_s > 0:
+                wait_for_telemetry(telemetry, cfg.telemetry_wait_s, out)
         grabber = Grabber(src, telemetry=telemetry).start()
         stack.callback(grabber.stop)
         first = grabber.next(timeout_s=30.0)
         if first is None:
             raise InputError(f"camera {cfg.camera} gave no frame within 30 s"
                              + (" (the input is empty or unreadable)" if grabber.ended else ""))
-        intrinsics, mount = camera_geometry(cfg, grabber, first.rgb)
+        grabber.put_back(first)
+        intrinsics, mount = camera_geometry(cfg, grabber, first)
         fuser = LandingFuser(fusion_cfg, intrinsics, mount)
         estimator = AltitudeScaleEstimator() if cfg.altitude_scale else None
-        scale = ScaleStage(calibration, estimator, intrinsics, mount)
+        scale = ScaleStage(calibration, estimator, intrinsics, mount, require_metric=bool(cfg.mav))
         recorder = None
         if cfg.record:
-            recorder = OverlayRecorder(cfg.record, intrinsics, mount, fps=cfg.fps or 10.0, grid_source=fuser)
+            recorder = OverlayRecorder(cfg.record, intrinsics, mount, fps=cfg.fps or 10.0)
             stack.callback(recorder.close)
         decision_log = stack.enter_context(open(cfg.log_path, "w", buffering=1)) if cfg.log_path else None
-        pipeline = Pipeline(_Prepend(first, grabber), inference, scale, fuser.update, telemetry, link,
-                            PipelineOptions(cfg.max_frames, cfg.duration_s, overlap=cfg.overlap,
-                                            world_grid=cfg.grid is GridMode.NED), decision_log,
-                            recorder, out)
+        if decision_log is not None:
+            decision_log.write(json.dumps(source_record(cfg, src.kind, inference.name)) + "\n")
+        # Telemetry is required (trust rules) whenever there is any: an autopilot link or the source's own.
+        has_telemetry = bool(cfg.mav) or own_telemetry
+        options = PipelineOptions(cfg.max_frames, cfg.duration_s, overlap=cfg.overlap,
+                                  world_grid=cfg.grid is GridMode.NED,
+                                  continuity=ContinuityConfig(hold_s=cfg.hold_s))
+        h, w = first.rgb.shape[:2]
+        pipeline = Pipeline(grabber, inference, scale, fuser.fuse, telemetry if has_telemetry else None, link,
+                            options, decision_log, recorder, out, FrameCheck(w, h))
         print(f"edge-run: {cfg.camera} -> {inference.name} -> "
               f"{cfg.mav + ' (' + cfg.autopilot.value + ')' if cfg.mav else 'no MAVLink'}; "
               f"need clearance {fusion_cfg.required_clearance_m:.1f} m; Ctrl-C to stop", file=out, flush=True)
@@ -239,22 +293,6 @@ def run(cfg: RunConfig, out=None) -> int:
         summary = pipeline.run()
     print(summary.table(), file=out, flush=True)
     return 0
-
-
-class _Prepend:
-    """The grabber with the already-taken first frame put back in front."""
-
-    def __init__(self, first, grabber: Grabber):
-        self._first, self._grabber = first, grabber
-
-    def __getattr__(self, name):
-        return getattr(self._grabber, name)
-
-    def next(self, timeout_s: float = 1.0):
-        if self._first is not None:
-            frame, self._first = self._first, None
-            return frame
-        return self._grabber.next(timeout_s)
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:

@@ -15,12 +15,15 @@ from edge_landing.runtime.core.camera import Attitude
 
 @dataclass(frozen=True)
 class Frame:
-    """One camera image. ``rgb`` is uint8 H×W×3 in RGB order."""
+    """One camera image. ``rgb`` is uint8 H×W×3 in RGB order. ``valid`` is False (with a ``reason``) when the
+    source could tell that the image did not decode completely (ARCHITECTURE.md §12)."""
 
     frame_id: int
     capture_time_s: float
     rgb: np.ndarray
     source: str = ""
+    valid: bool = True
+    reason: str = ""
 
 
 @dataclass(frozen=True)

@@ -48,6 +48,7 @@ from edge_landing.runtime.fusion.grid import (
     splat_samples,
 )
 from edge_landing.runtime.fusion.landing import Choice, KeptSpot, choose_spot
+from edge_landing.runtime.fusion.result import FusionResult
 
 log = logging.getLogger(__name__)
 DEGRADED_NO_HVO = "degraded: depth only (no HVO head), confidence lowered"
@@ -76,6 +77,7 @@ class FusionConfig:
     travel_penalty_per_m: float = 0.03            # score (metres of clearance) lost per metre of travel
     hysteresis_m: float = 1.0                     # a new spot must beat the kept one by this score
     decay_s: float = 2.0                          # e-folding time of grid evidence (NED mode)
+    memory_s: float = 3.0                         # NED: a cell not observed for this long is unobserved again
     stale_after_s: float = 0.5                    # frames older than this (vs now_s) give no target
     keep_target_s: float = 2.0                    # forget the kept target after this long without one
     splat_spacing_m: float = 0.5                  # sample spacing inside a pixel's footprint
@@ -93,7 +95,7 @@ class FusionConfig:
             raise InputError(f"fusion working size must be at least 8x8 pixels, got {h}x{w}")
         positive = {"cell_m": self.cell_m, "grid_radius_m": self.grid_radius_m,
                     "splat_spacing_m": self.splat_spacing_m, "decay_s": self.decay_s,
-                    "stale_after_s": self.stale_after_s, "max_footprint_m": self.max_footprint_m,
+                    "stale_after_s": self.stale_after_s, "memory_s": self.memory_s, "max_footprint_m": self.max_footprint_m,
                     "clearance_saturation_m": self.clearance_saturation_m,
                     "max_samples_per_axis": self.max_samples_per_axis}
         for name, value in positive.items():
@@ -175,6 +177,12 @@ class LandingFuser:
         self._grid.clear()
         self._view, self._mode, self._last_time_s, self._kept = None, None, None, None
 
+    def fuse(self, pred: Prediction, state: VehicleState | None = None, now_s: float | None = None) -> FusionResult:
+        """:meth:`update` plus the grid this frame was judged on (None when the frame did not reach the grid)."""
+        before = self._view
+        target = self.update(pred, state, now_s)
+        return FusionResult(target, self._view if self._view is not before else None)
+
     def update(self, pred: Prediction, state: VehicleState | None = None, now_s: float | None = None) -> Target:
         t0 = time.perf_counter()
         timings = dict(getattr(pred, "timings_s", None) or {})
@@ -251,7 +259,8 @@ class LandingFuser:
                                                    cfg.min_horizontal_share, cfg.min_flat_share,
                                                    use_hvo=hvo_h is not None,
                                                    min_neighbours_to_fill=cfg.min_neighbours_to_fill,
-                                                   min_vote_share=cfg.min_vote_share), mode)
+                                                   min_vote_share=cfg.min_vote_share,
+                                                   min_seen_weight=math.exp(-cfg.memory_s / cfg.decay_s)), mode)
         if n_in == 0 and mode == "vehicle":
             return none(f"no depth inside the grid: nothing valid within {cfg.grid_radius_m} m of the vehicle")
 

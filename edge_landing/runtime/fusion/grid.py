@@ -29,6 +29,7 @@ import numpy as np
 
 # Sum arrays kept per cell, in this order: weight (count), height, height², horizontal votes, flat votes.
 _N_SUMS = 5
+_SEEN = _N_SUMS + 2  # layer index of the "last seen" weight (after the two vote weights)
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,10 @@ class CellRules:
     use_hvo: bool = True
     min_neighbours_to_fill: int = 6
     min_vote_share: float = 0.6
+    # Memory bounded in time (NED): a cell counts as observed while its "last seen" weight, set to 1 by every
+    # frame that observes it and decayed with the evidence (exp(-dt/decay_s)), is at least this; i.e. for
+    # decay_s·ln(1/min_seen_weight) seconds after it was last seen, whatever the frame rate.
+    min_seen_weight: float = math.exp(-1.5)
 
 
 @dataclass(frozen=True)
@@ -64,6 +69,15 @@ class GridView:
     landable: np.ndarray       # rows × cols bool
     clearance_m: np.ndarray    # rows × cols float32, 0 where not landable
     votes: Optional[np.ndarray] = None   # 2 × rows × cols: (decayed) frames that observed / judged landable
+    seen: Optional[np.ndarray] = None    # rows × cols: exp(-time since last observed / decay_s)
+    min_seen_weight: float = 0.0
+
+    @property
+    def observed(self) -> np.ndarray:
+        """rows × cols bool: cells observed recently enough to count (time-bounded memory)."""
+        if self.seen is None:
+            return np.asarray(self.sums[0] > 0)
+        return np.asarray(self.seen >= self.min_seen_weight)
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -206,7 +220,8 @@ class TopDownGrid:
         self._buf = np.empty((_N_SUMS, 0), dtype=np.float64)    # per-frame binning buffer (never handed out)
         self.clear()
 
-    # One float32 array holds the five sums and the two vote weights, so that decaying and moving the grid
+    # One float32 array holds the five sums, the two vote weights and the "last seen" weight, so that
+    # decaying and moving the grid
     # is one pass over memory (float32 is plenty: per-frame judging is done in float64 on the crop).
     @property
     def sums(self) -> np.ndarray:
@@ -214,13 +229,17 @@ class TopDownGrid:
 
     @property
     def votes(self) -> np.ndarray:
-        return self._acc[_N_SUMS:]
+        return self._acc[_N_SUMS:_SEEN]
+
+    @property
+    def seen(self) -> np.ndarray:
+        return self._acc[_SEEN]
 
     def clear(self, ref_down_m: float = 0.0) -> None:
         """Forget everything. Heights are stored relative to ``ref_down_m`` (keeps Σh² well conditioned)."""
         self.ref_down_m = float(ref_down_m)
         s = self.size
-        self._acc = np.zeros((_N_SUMS + 2, s, s), dtype=np.float32)   # calloc: untouched pages cost nothing
+        self._acc = np.zeros((_SEEN + 1, s, s), dtype=np.float32)   # calloc: untouched pages cost nothing
         self._factor = 1.0                                       # decay not yet applied to _acc
         self._frame: Optional[tuple[int, int, np.ndarray]] = None   # (row0, col0, sums crop) of the last add
         self._fresh = True                                       # no GridView holds _acc yet
@@ -327,16 +346,21 @@ class TopDownGrid:
                     self._acc = self._acc.copy()
                 acc = self._acc[(slice(None),) + win]
                 acc[:_N_SUMS] += crop
-                acc[_N_SUMS] += crop[0] >= rules.min_points_per_cell
+                seen_now = crop[0] >= rules.min_points_per_cell
+                acc[_N_SUMS] += seen_now
                 acc[_N_SUMS + 1] += ok
+                acc[_SEEN][seen_now] = 1.0
             else:
                 self._acc = np.zeros(self._acc.shape, dtype=np.float32)
                 acc = self._acc[(slice(None),) + win]
                 acc[:_N_SUMS] = crop
                 acc[_N_SUMS] = crop[0] >= rules.min_points_per_cell
                 acc[_N_SUMS + 1] = ok
+                acc[_SEEN] = acc[_N_SUMS]
         self._fresh = False                                   # handed out below: copy before writing into them
-        observed = self.sums[0] >= rules.min_points_per_cell
+        # Observed = seen recently (time-bounded), not "has decayed samples": a decayed count outlives the last
+        # observation by longer the higher the frame rate (9-13 s at 30 fps with decay_s 2 and threshold 1).
+        observed = (self.seen >= rules.min_seen_weight) & (self.sums[0] > 0)
         rows = np.flatnonzero(observed.any(axis=1))
         cols = np.flatnonzero(observed.any(axis=0))
         if rows.size:
@@ -349,7 +373,7 @@ class TopDownGrid:
             landable[:, 0] = landable[:, -1] = False
             clearance[r0:r1, c0:c1] = clearance_from_mask(landable[r0:r1, c0:c1], self.cell_m)
         return GridView(frame, self.cell_m, self.north0_m, self.east0_m, self.ref_down_m, self.sums, landable,
-                        clearance, self.votes)
+                        clearance, self.votes, self.seen, rules.min_seen_weight)
 
 
 def judge_cells(sums: np.ndarray, rules: CellRules) -> np.ndarray:

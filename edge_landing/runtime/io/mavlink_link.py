@@ -1,38 +1,52 @@
-"""The MAVLink link (ARCHITECTURE.md §8): heartbeat, LANDING_TARGET, STATUSTEXT out; telemetry in; signing; reconnect.
+"""The MAVLink link (ARCHITECTURE.md §8, §12): heartbeat, LANDING_TARGET, STATUSTEXT out; telemetry in; signing.
 
-pymavlink is imported lazily (``load_mavutil``) after ``MAVLINK20=1`` is set, because it picks MAVLink 1 or
-2 when it is first imported and the LANDING_TARGET extension fields exist only in MAVLink 2.
+Trust: telemetry is taken from one autopilot only (the sender of the first autopilot-type HEARTBEAT, or the
+system named by ``LinkConfig.target_system``); other senders are counted and ignored. The link is "up" only
+while that autopilot is heard; a target is sent only then, only while it is younger than
+``max_target_age_s``, and (TCP) only while the socket is not backed up, so nothing stale is queued for later.
 A dead link never stops the pipeline: errors are caught and counted, logged once per state change, the
-connection is reopened with back-off, and sending resumes when the other end returns. Example::
+connection is (re)opened with back-off in the link's own thread (start-up never blocks on it), and sending
+resumes when the other end returns. Example::
 
     link = MavlinkLink(LinkConfig("udpout:127.0.0.1:14550"), TelemetryBuffer()).start()
-    link.send_target(target, state)      # never raises
+    sent, why = link.send_target(target, state)      # never raises
     link.stop()
 """
 from __future__ import annotations
 
 import logging
 import math
-import os
-import socket
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Target, VehicleState
+from edge_landing.runtime.core.target_frames import target_ned
+from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: the link's public helpers)
+    NET_PREFIXES,
+    UDP_PREFIXES,
+    check_url,
+    load_mavutil,
+    load_signing_key,
+    open_connection,
+    unsent_bytes,
+)
 from edge_landing.runtime.io.telemetry import RANGEFINDER_DOWN, TelemetryBuffer
 
+__all__ = ["Autopilot", "LinkConfig", "LinkCounts", "MavlinkLink", "check_url", "load_mavutil", "load_signing_key",
+           "NET_PREFIXES", "FRAME_BODY_FRD", "FRAME_LOCAL_NED", "TELEMETRY_MESSAGES"]
 log = logging.getLogger(__name__)
-NET_PREFIXES = ("udpout:", "udpin:", "udp:", "udpbcast:", "tcp:", "tcpin:")
 FRAME_LOCAL_NED, FRAME_BODY_FRD = 1, 12
 TARGET_TYPE_VISION_OTHER = 3
 TELEMETRY_MESSAGES = ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "LOCAL_POSITION_NED")
+MAV_AUTOPILOT_INVALID = 8
+NOT_A_VEHICLE_TYPES = {6, 18, 26, 27, 30}  # GCS, onboard controller, gimbal, ADSB, camera
 
 
 class Autopilot(ChoiceEnum):
@@ -51,66 +65,40 @@ class LinkConfig:
     system_id: int = 1             # companion computers share the vehicle's system id
     component_id: int = 191        # MAV_COMP_ID_ONBOARD_COMPUTER
     key_path: Optional[str] = None
+    target_system: Optional[int] = None  # take telemetry only from this system id (else: first autopilot heard)
     heartbeat_period_s: float = 1.0
     telemetry_rate_hz: float = 20.0
     error_quiet_s: float = 2.0     # the link counts as up again after this long without a send error
+    heard_within_s: float = 1.5    # the autopilot counts as heard while a message came within this
+    max_target_age_s: float = 1.0  # an older target is dropped, never queued
+    max_unsent_bytes: int = 512    # TCP: a send queue longer than this means the peer is not reading
+    connect_timeout_s: float = 2.0
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 5.0
 
 
-def load_mavutil():
-    """pymavlink's mavutil with the MAVLink 2 dialect, whatever was imported before."""
-    os.environ["MAVLINK20"] = "1"
-    from pymavlink import mavutil
+class LinkCounts:
+    """Thread-safe counters (the pipeline thread sends, the link thread receives)."""
 
-    if getattr(mavutil.mavlink, "WIRE_PROTOCOL_VERSION", "1.0") != "2.0":
-        mavutil.set_dialect("ardupilotmega")  # pymavlink was imported earlier without MAVLINK20
-    return mavutil
+    KEYS = ("targets", "heartbeats", "statustext", "received", "send_errors", "reconnects",
+            "skipped_px4_no_position", "dropped_old_targets", "dropped_backed_up", "dropped_not_heard",
+            "other_senders", "before_autopilot", "bad_signature")
 
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._c: Counter[str] = Counter({k: 0 for k in self.KEYS})
 
-def check_url(url: str) -> None:
-    """Fail fast on a connection string pymavlink would not understand."""
-    if url.startswith(NET_PREFIXES):
-        host_port = url.split(":", 1)[1]
-        host, _, port = host_port.rpartition(":")
-        if not host or not port.isdigit() or not 0 < int(port) < 65536:
-            raise InputError(f"MAVLink connection '{url}' needs host:port after the scheme, e.g. udpout:127.0.0.1:14550")
-        return
-    device = url.split(",", 1)[0]
-    if device.startswith("/dev/") or device.upper().startswith("COM"):
-        baud = url.split(",", 1)[1] if "," in url else "57600"
-        if not baud.isdigit():
-            raise InputError(f"MAVLink serial connection '{url}' has a bad baud rate '{baud}'; expected /dev/ttyUSB0,57600")
-        return
-    raise InputError(f"unsupported MAVLink connection '{url}'; expected udpout:host:port, udpin:host:port, "
-                     f"tcp:host:port or a serial device like /dev/ttyUSB0,57600")
+    def add(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self._c[key] += n
 
+    def __getitem__(self, key: str) -> int:
+        with self._lock:
+            return self._c[key]
 
-def load_signing_key(path: str) -> bytes:
-    """A 32-byte MAVLink 2 signing key: raw bytes, or 64 hex characters in a text file."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"MAVLink signing key file {p} does not exist")
-    data = p.read_bytes()
-    if len(data) == 32:
-        return data
-    text = data.strip()
-    try:
-        key = bytes.fromhex(text.decode("ascii"))
-    except (UnicodeDecodeError, ValueError):
-        key = b""
-    if len(key) != 32:
-        raise InputError(f"MAVLink signing key {p} has {len(data)} bytes; expected 32 raw bytes or 64 hex characters")
-    return key
-
-
-def target_ned(target: Target, state: Optional[VehicleState]) -> Optional[np.ndarray]:
-    """Absolute local NED of the target: vehicle position at capture + body vector rotated by the attitude."""
-    if target.position_ned_m is not None:
-        return np.asarray(target.position_ned_m, dtype=np.float64)
-    if state is None or state.position_ned_m is None or target.position_body_frd_m is None:
-        return None
-    return np.asarray(state.position_ned_m) + state.attitude.ned_from_body() @ np.asarray(target.position_body_frd_m)
+    def snapshot(self) -> Dict[str, int]:
+        with self._lock:
+            return dict(self._c)
 
 
 class MavlinkLink:
@@ -119,17 +107,17 @@ class MavlinkLink:
     def __init__(self, config: LinkConfig, telemetry: TelemetryBuffer):
         self.config = config
         self.telemetry = telemetry
-        self.counts = {"targets": 0, "heartbeats": 0, "statustext": 0, "received": 0, "send_errors": 0,
-                       "reconnects": 0, "skipped_px4_no_position": 0}
+        self.counts = LinkCounts()
         self.peer: Optional[Tuple[int, int]] = None
-        self._conn = None
-        self._mavutil = None
+        self._conn: Any = None
+        self._mavutil: Any = None
         self._key: Optional[bytes] = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._last_error_s = -math.inf
         self._last_error = ""
+        self._last_heard_s = -math.inf
         self._up_reported: Optional[bool] = None
         self._skip_reported = False
         self._last_telemetry_s = -math.inf
@@ -146,7 +134,7 @@ class MavlinkLink:
         if self.config.key_path:
             self._key = load_signing_key(self.config.key_path)
         self._mavutil = load_mavutil()
-        self._connect()  # a refused first connection is retried in the thread, not fatal
+        # Connecting happens in the thread: an endpoint that drops connection attempts never blocks start-up.
         self._thread = threading.Thread(target=self._run, name="mavlink", daemon=True)
         self._thread.start()
         return self
@@ -158,23 +146,44 @@ class MavlinkLink:
         with self._lock:
             self._close()
 
+    def counters(self) -> Dict[str, int]:
+        """A snapshot of the link's counters."""
+        return self.counts.snapshot()
+
+    def heard_age_s(self, now_s: Optional[float] = None) -> float:
+        """Seconds since the autopilot was last heard (inf if never)."""
+        return (time.monotonic() if now_s is None else now_s) - self._last_heard_s
+
     @property
     def up(self) -> bool:
-        return self._conn is not None and time.monotonic() - self._last_error_s > self.config.error_quiet_s
+        """Connected, no recent error, and the autopilot heard recently."""
+        now = time.monotonic()
+        return (self._conn is not None and now - self._last_error_s > self.config.error_quiet_s
+                and self.heard_age_s(now) <= self.config.heard_within_s)
 
     # -- sending (pipeline thread) ----------------------------------------------------------------------
     def send_target(self, target: Target, state: Optional[VehicleState]) -> Tuple[bool, str]:
-        """Send LANDING_TARGET for a valid target; returns (sent, why not)."""
+        """Send LANDING_TARGET for a valid target; returns (sent, why not). Sent means it left the socket."""
         if not target.valid or target.position_body_frd_m is None:
             return False, target.reason or "no target"
         body = np.asarray(target.position_body_frd_m, dtype=np.float64)
         distance = float(np.linalg.norm(body))
         if not np.isfinite(body).all() or distance <= 0:
             return False, "target position is not finite"
+        now = time.monotonic()
+        age = now - target.capture_time_s
+        if age > self.config.max_target_age_s:
+            self.counts.add("dropped_old_targets")
+            return False, f"target too old: captured {age:.2f} s ago (limit {self.config.max_target_age_s:g} s)"
+        heard = self.heard_age_s(now)
+        if heard > self.config.heard_within_s:
+            self.counts.add("dropped_not_heard")
+            return False, ("link down: no autopilot heard yet" if heard == math.inf
+                           else f"link down: autopilot not heard for {heard:.1f} s")
         if self.config.autopilot is Autopilot.PX4:
             xyz = target_ned(target, state)
             if xyz is None:
-                self.counts["skipped_px4_no_position"] += 1
+                self.counts.add("skipped_px4_no_position")
                 if not self._skip_reported:
                     log.warning("px4 mode: no LOCAL_POSITION_NED telemetry matched frame %d, so no LANDING_TARGET "
                                 "is sent (PX4 needs the target's absolute local position)", target.frame_id)
@@ -184,24 +193,37 @@ class MavlinkLink:
             frame = FRAME_LOCAL_NED
         else:
             xyz, frame = body, FRAME_BODY_FRD
+        backlog = self._backlog()
+        if backlog > self.config.max_unsent_bytes:
+            self.counts.add("dropped_backed_up")
+            return False, f"link backed up: {backlog} bytes not yet taken by the peer"
         m = self._mavutil.mavlink
         msg = m.MAVLink_landing_target_message(
             int(target.capture_time_s * 1e6), 0, frame, _finite(target.angle_x_rad), _finite(target.angle_y_rad),
             distance, _finite(target.size_x_rad), _finite(target.size_y_rad), float(xyz[0]), float(xyz[1]),
             float(xyz[2]), [1.0, 0.0, 0.0, 0.0], TARGET_TYPE_VISION_OTHER, 1)
         if self._send(msg):
-            self.counts["targets"] += 1
+            self.counts.add("targets")
             return True, ""
-        return False, "link down"
+        return False, "link down: send failed"
 
     def send_status(self, text: str, severity: int = 6) -> bool:
-        """STATUSTEXT (severity 6 = INFO), at most 50 characters."""
+        """STATUSTEXT (severity 6 = INFO), at most 50 characters (put the number first: it is cut there)."""
+        if self._mavutil is None:
+            return False
         msg = self._mavutil.mavlink.MAVLink_statustext_message(severity, text[:50].encode("ascii", "replace"))
         ok = self._send(msg)
-        self.counts["statustext"] += ok
+        if ok:
+            self.counts.add("statustext")
         return ok
 
-    def _send(self, msg) -> bool:
+    def _backlog(self) -> int:
+        conn = self._conn
+        if conn is None or not self.config.url.startswith("tcp:"):
+            return 0
+        return unsent_bytes(conn.port)
+
+    def _send(self, msg: Any) -> bool:
         with self._lock:
             if self._conn is None:
                 return False
@@ -211,7 +233,7 @@ class MavlinkLink:
             except BlockingIOError:
                 return False  # socket buffer full: drop this message, the link itself is fine
             except (OSError, ValueError) as exc:  # refused / reset / serial gone
-                if not self.config.url.startswith(("udpout:", "udpin:", "udp:", "udpbcast:")):
+                if not self.config.url.startswith(UDP_PREFIXES):
                     self._close()  # a stream connection is dead after an error: the thread reopens it
                 self._fault(f"send failed: {exc}")
                 return False
@@ -219,34 +241,15 @@ class MavlinkLink:
     # -- connection -----------------------------------------------------------------------------------
     def _connect(self) -> bool:
         c = self.config
-        kwargs = dict(source_system=c.system_id, source_component=c.component_id)
-        if c.url.startswith("tcp:"):
-            kwargs.update(retries=0)
-        device, baud = c.url, 57600
-        if not c.url.startswith(NET_PREFIXES) and "," in c.url:
-            device, baud = c.url.split(",", 1)[0], int(c.url.split(",", 1)[1])
         try:
-            conn = self._mavutil.mavlink_connection(device, baud=baud, **kwargs)
+            conn = open_connection(self._mavutil, c.url, c.system_id, c.component_id, c.connect_timeout_s)
         except Exception as exc:  # pymavlink raises OSError, serial.SerialException or bare Exception
             self._fault(f"cannot connect: {exc}")
             return False
-        try:
-            if c.url.startswith("udpout:"):
-                # A connected UDP socket reports 'port unreachable' as ConnectionRefusedError on the next send or
-                # receive; pymavlink's receive swallows it, so ours lets it through.
-                conn.port.connect(conn.destination_addr)
-                conn.recv = _strict_udp_recv(conn.port)
-        except OSError as exc:  # e.g. the host name does not resolve (yet): retried like a refused connection
-            conn.close()
-            self._fault(f"cannot connect: {exc}")
-            return False
-        if c.url.startswith(("udpout:", "tcp:")):
-            conn.mav.file = _RaisingWriter(conn.port)  # pymavlink's own write swallows socket errors
-        if c.url.startswith("tcp:"):
-            # pymavlink only prints on a closed TCP peer (and keeps printing); raise so we reconnect.
-            conn.handle_eof = conn.handle_disconnect = _raise_closed
         if self._key is not None:
             conn.setup_signing(self._key, sign_outgoing=True)
+            # pymavlink drops unsigned and badly signed messages silently; this hook sees every one of them.
+            conn.mav.signing.allow_unsigned_callback = self._rejected_signature
         with self._lock:
             self._conn = conn
         return True
@@ -260,7 +263,7 @@ class MavlinkLink:
             self._conn = None
 
     def _fault(self, reason: str) -> None:
-        self.counts["send_errors"] += 1
+        self.counts.add("send_errors")
         self._last_error_s = time.monotonic()
         self._last_error = reason
         self._report()
@@ -269,25 +272,28 @@ class MavlinkLink:
         up = self.up
         if up != self._up_reported:
             if up:
-                log.info("MAVLink link %s is up", self.config.url)
-            else:
-                log.warning("MAVLink link %s is down (%s); retrying with back-off, the pipeline keeps running",
-                            self.config.url, self._last_error)
+                log.info("MAVLink link %s is up (autopilot %s heard)", self.config.url, self.peer)
+            elif self._up_reported is not None:
+                why = self._last_error if time.monotonic() - self._last_error_s <= self.config.error_quiet_s \
+                    else f"autopilot not heard for {self.heard_age_s():.1f} s"
+                log.warning("MAVLink link %s is down (%s); no targets are sent until it is back", self.config.url, why)
             self._up_reported = up
 
     # -- the thread -----------------------------------------------------------------------------------
     def _run(self) -> None:
-        backoff_s = self.config.reconnect_min_s
+        backoff_s = 0.0
         next_heartbeat_s = 0.0
+        first = True
         while not self._stop.is_set():
             if self._conn is None:
                 if self._stop.wait(backoff_s):
                     break
                 if self._connect():
-                    self.counts["reconnects"] += 1
+                    self.counts.add("reconnects", 0 if first else 1)
                     backoff_s = self.config.reconnect_min_s
                 else:
-                    backoff_s = min(backoff_s * 2.0, self.config.reconnect_max_s)
+                    backoff_s = min(max(backoff_s * 2.0, self.config.reconnect_min_s), self.config.reconnect_max_s)
+                first = False
                 continue
             now = time.monotonic()
             if now >= next_heartbeat_s:
@@ -310,11 +316,19 @@ class MavlinkLink:
                 self._handle(msg)
             self._report()
 
+    def _rejected_signature(self, _mav: Any, _msg_id: int) -> bool:
+        """Say so when signed traffic is rejected: a wrong key otherwise drops all telemetry silently."""
+        if self.counts["bad_signature"] == 0:
+            log.warning("MAVLink signing: messages with a bad or missing signature are arriving and are dropped "
+                        "(wrong --mav-key?); no telemetry from them")
+        self.counts.add("bad_signature")
+        return False
+
     def _heartbeat(self) -> None:
         m = self._mavutil.mavlink
         if self._send(m.MAVLink_heartbeat_message(m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0,
                                                   m.MAV_STATE_ACTIVE, 3)):
-            self.counts["heartbeats"] += 1
+            self.counts.add("heartbeats")
 
     def _request_telemetry(self, now: float) -> None:
         """Ask the autopilot for the messages we need until they flow (and again if they stop)."""
@@ -328,22 +342,35 @@ class MavlinkLink:
             self._send(m.MAVLink_command_long_message(self.peer[0], self.peer[1], m.MAV_CMD_SET_MESSAGE_INTERVAL,
                                                       0, msg_id, interval_us, 0, 0, 0, 0, 0))
 
-    def _handle(self, msg) -> None:
+    def _choose_peer(self, msg: Any, sender: Tuple[int, int]) -> None:
+        """The first autopilot-type HEARTBEAT (of ``target_system`` when given) names the one autopilot."""
+        if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in NOT_A_VEHICLE_TYPES:
+            return
+        if self.config.target_system is not None and sender[0] != self.config.target_system:
+            return
+        self.peer = sender
+        log.info("autopilot found: system %d component %d; telemetry from any other sender is ignored", *sender)
+
+    def _handle(self, msg: Any) -> None:
         kind = msg.get_type()
         if kind == "BAD_DATA":
             return
-        self.counts["received"] += 1
-        arrival = time.monotonic()
-        t = self.telemetry
-        m = self._mavutil.mavlink
-        if kind == "HEARTBEAT":
-            if msg.autopilot != m.MAV_AUTOPILOT_INVALID and msg.type != m.MAV_TYPE_GCS and self.peer is None:
-                self.peer = (msg.get_srcSystem(), msg.get_srcComponent())
-                log.info("autopilot found: system %d component %d", *self.peer)
+        self.counts.add("received")
+        sender = (int(msg.get_srcSystem()), int(msg.get_srcComponent()))
+        if kind == "HEARTBEAT" and self.peer is None:
+            self._choose_peer(msg, sender)
+        if self.peer is None:
+            self.counts.add("before_autopilot")
             return
+        if sender != self.peer:
+            self.counts.add("other_senders")
+            return
+        arrival = time.monotonic()
+        self._last_heard_s = arrival
         if kind not in TELEMETRY_MESSAGES:
             return
         self._last_telemetry_s = arrival
+        t = self.telemetry
         if kind == "ATTITUDE":
             t.add_attitude(msg.roll, msg.pitch, msg.yaw, msg.time_boot_ms, arrival)
         elif kind == "LOCAL_POSITION_NED":
@@ -351,31 +378,8 @@ class MavlinkLink:
         elif kind == "GLOBAL_POSITION_INT":
             t.add_relative_alt(msg.relative_alt / 1000.0, msg.time_boot_ms, arrival)
         elif kind == "DISTANCE_SENSOR" and msg.orientation == RANGEFINDER_DOWN:
-            if msg.min_distance <= msg.current_distance <= msg.max_distance:
-                t.add_rangefinder(msg.current_distance / 100.0, msg.time_boot_ms, arrival)
-
-
-class _RaisingWriter:
-    """Stands in for pymavlink's file object so that socket errors reach us instead of being swallowed."""
-
-    def __init__(self, sock: socket.socket):
-        self.sock = sock
-
-    def write(self, buf: bytes) -> None:
-        self.sock.send(buf)
-
-
-def _strict_udp_recv(sock: socket.socket):
-    def recv(n=None) -> bytes:
-        try:
-            return sock.recv(65535)
-        except BlockingIOError:
-            return b""
-    return recv
-
-
-def _raise_closed() -> None:
-    raise ConnectionResetError("connection closed by the other end")
+            t.add_rangefinder(msg.current_distance / 100.0, msg.time_boot_ms, arrival,
+                              min_m=msg.min_distance / 100.0, max_m=msg.max_distance / 100.0)
 
 
 def _finite(value: float) -> float:

@@ -8,7 +8,7 @@ import logging
 import math
 import os
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import cv2
 import numpy as np
@@ -16,6 +16,7 @@ import numpy as np
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame, Prediction, Target, VehicleState
+from edge_landing.runtime.fusion.grid import GridView
 
 log = logging.getLogger(__name__)
 # RGB colours of horizontal / vertical / other (green = landable kind of surface).
@@ -26,20 +27,23 @@ INSET_PX = 160
 def hvo_colours(rgb: np.ndarray, hvo_prob: Optional[np.ndarray], alpha: float = 0.35) -> np.ndarray:
     """Blend the argmax HVO class colours over the image."""
     if hvo_prob is None:
-        return rgb.copy()
+        plain: np.ndarray = rgb.copy()
+        return plain
     labels = np.argmax(hvo_prob, axis=2).astype(np.uint8)
     labels = cv2.resize(labels, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_NEAREST)
     colour = HVO_COLOURS[labels]
-    return cv2.addWeighted(rgb, 1.0 - alpha, colour, alpha, 0.0)
+    out: np.ndarray = cv2.addWeighted(rgb, 1.0 - alpha, colour, alpha, 0.0)
+    return out
 
 
-def grid_inset(grid, target: Target, state: Optional[VehicleState], size_px: int = INSET_PX) -> Optional[np.ndarray]:
+def grid_inset(grid: Optional[GridView], target: Target, state: Optional[VehicleState],
+               size_px: int = INSET_PX) -> Optional[np.ndarray]:
     """Top-down grid (north up): landable green, observed but not landable red, unobserved grey; target ring."""
     if grid is None:
         return None
     rows, cols = grid.shape
     img = np.full((rows, cols, 3), 60, dtype=np.uint8)
-    img[grid.count > 0] = (170, 40, 40)
+    img[grid.observed] = (170, 40, 40)
     img[grid.landable] = (40, 190, 60)
     img = np.ascontiguousarray(img[::-1])  # row 0 is the southmost: flip so north is up
     scale = size_px / max(rows, cols)
@@ -55,11 +59,12 @@ def grid_inset(grid, target: Target, state: Optional[VehicleState], size_px: int
     return img
 
 
-def _target_ne(grid, target: Target, state: Optional[VehicleState]):
+def _target_ne(grid: GridView, target: Target, state: Optional[VehicleState]) -> Optional[np.ndarray]:
     if grid.frame == "ned":
         return None if target.position_ned_m is None else target.position_ned_m[:2]
     att = state.attitude.ned_from_body() if state is not None else np.eye(3)
-    return (att @ np.asarray(target.position_body_frd_m))[:2]
+    out: np.ndarray = (att @ np.asarray(target.position_body_frd_m))[:2]
+    return out
 
 
 def draw_target(img: np.ndarray, target: Target, intrinsics: Intrinsics, mount: Mount) -> None:
@@ -85,37 +90,38 @@ def draw_target(img: np.ndarray, target: Target, intrinsics: Intrinsics, mount: 
 class OverlayRecorder:
     """Writes the overlay video; opened at the first frame (its size), closed by ``close``."""
 
-    def __init__(self, path: os.PathLike | str, intrinsics: Intrinsics, mount: Mount, fps: float = 10.0,
-                 grid_source=None):
+    def __init__(self, path: os.PathLike[str] | str, intrinsics: Intrinsics, mount: Mount, fps: float = 10.0):
         self.path = Path(path)
         if not self.path.parent.is_dir() or not os.access(self.path.parent, os.W_OK):
             raise InputError(f"cannot record to {self.path}: folder {self.path.parent} does not exist or is not writable")
         self.intrinsics, self.mount, self.fps = intrinsics, mount, fps
-        self.grid_source = grid_source  # an object with a ``.grid`` property (LandingFuser) or None
         self.frames = 0
         self.failures = 0
-        self._writer = None
+        self._writer: Optional[Any] = None
 
-    def write(self, frame: Frame, pred: Prediction, target: Target, state: Optional[VehicleState] = None) -> None:
+    def write(self, frame: Frame, pred: Prediction, target: Target, state: Optional[VehicleState] = None,
+              grid: Optional[GridView] = None) -> None:
+        """One overlay frame; ``grid`` is the fusion grid this frame was judged on (FusionResult.grid)."""
         try:
-            img = self.render(frame, pred, target, state)
+            img = self.render(frame, pred, target, state, grid)
         except Exception as exc:  # a drawing bug must not stop the flight loop: record the plain frame
             self.failures += 1
             log.debug("overlay failed on frame %d: %s", frame.frame_id, exc)
             img = frame.rgb
         if self._writer is None:
             h, w = img.shape[:2]
-            self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
+            self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter.fourcc(*"mp4v"), self.fps, (w, h))
             if not self._writer.isOpened():
                 log.error("cannot open %s for writing; recording is off", self.path)
-                self.grid_source, self._writer = None, _NullWriter()
+                self._writer = _NullWriter()
         self._writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         self.frames += 1
 
-    def render(self, frame: Frame, pred: Prediction, target: Target, state: Optional[VehicleState]) -> np.ndarray:
+    def render(self, frame: Frame, pred: Prediction, target: Target, state: Optional[VehicleState],
+               grid: Optional[GridView] = None) -> np.ndarray:
         img = hvo_colours(frame.rgb, pred.hvo_prob)
         draw_target(img, target, self.intrinsics, self.mount)
-        inset = grid_inset(getattr(self.grid_source, "grid", None), target, state,
+        inset = grid_inset(grid, target, state,
                            size_px=min(INSET_PX, img.shape[0] // 2, img.shape[1] // 2))
         if inset is not None:
             h, w = inset.shape[:2]
@@ -141,7 +147,7 @@ class OverlayRecorder:
 
 
 class _NullWriter:
-    def write(self, _img) -> None:
+    def write(self, _img: np.ndarray) -> None:
         pass
 
     def release(self) -> None:

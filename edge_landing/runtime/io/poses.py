@@ -9,7 +9,7 @@ import csv
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List
+from typing import List, Tuple
 
 from edge_landing.runtime.core.errors import SceneError
 
@@ -22,7 +22,7 @@ class Pose:
 
     frame: int
     t_s: float
-    ned_m: tuple
+    ned_m: Tuple[float, float, float]
     roll_rad: float
     pitch_rad: float
     yaw_rad: float
@@ -30,7 +30,7 @@ class Pose:
 
 
 
-def read_poses_csv(path: os.PathLike | str) -> List[Pose]:
+def read_poses_csv(path: os.PathLike[str] | str) -> List[Pose]:
     """The rows of a poses.csv (ARCHITECTURE.md §4) in file order; a missing column or bad row is a SceneError."""
     path = Path(path)
     if not path.is_file():

@@ -21,10 +21,11 @@ import time
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
-from typing import Callable, List, Optional
+from typing import Any, Callable, List, Optional
 
 import numpy as np
 
+from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame, VehicleState
 
@@ -74,15 +75,39 @@ class SourceConfig:
     reopen_max_s: float = 5.0
 
     @staticmethod
-    def from_string(camera: str, **kwargs) -> SourceConfig:
+    def from_string(camera: str, **kwargs: Any) -> SourceConfig:
         return SourceConfig(camera=camera, kind=SourceKind.from_string(camera), **kwargs)
+
+
+def incomplete_jpeg_or_png(data: bytes) -> str:
+    """Why an encoded JPEG/PNG file is incomplete ('' when its end marker is there)."""
+    body = data.rstrip(b"\0\r\n ")
+    if data[:2] == b"\xff\xd8" and not body.endswith(b"\xff\xd9"):
+        return "JPEG without its end-of-image marker (truncated file)"
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in body[-12:]:
+        return "PNG without its IEND chunk (truncated file)"
+    return ""
+
+
+def grey_fill(rgb: np.ndarray) -> str:
+    """Why an image looks like an incomplete decode: libjpeg fills what it could not decode with grey 128."""
+    last = rgb[-1]
+    if last.size and bool(np.all(last == 128)):
+        return "bottom row is uniform grey 128 (an incompletely decoded JPEG frame)"
+    return ""
 
 
 class Reader:
     """One opened input. ``read`` returns RGB uint8 H×W×3, or None at the end of a recorded input;
-    it raises OSError when a live device fails (the grabber then reopens it)."""
+    it raises OSError when a live device fails (the grabber then reopens it). ``problem`` says why the last
+    image is not to be trusted ('' when it is), ``intrinsics``/``mount`` are known by a synthetic camera,
+    ``last_state`` is the vehicle state of the last image when the source knows it (sim, pose replay)."""
 
     name = ""
+    problem = ""
+    intrinsics: Optional[Intrinsics] = None
+    mount: Optional[Mount] = None
+    last_state: Optional[VehicleState] = None
 
     def read(self) -> Optional[np.ndarray]:
         raise NotImplementedError
@@ -101,7 +126,7 @@ class VideoReader(Reader):
         self.name = config.camera
         self._expected_frames = 0
         self._read = 0
-        target = config.camera
+        target: int | str = config.camera
         if config.kind is SourceKind.DEVICE:
             target = int(config.camera) if config.camera.isdigit() else config.camera
             node = f"/dev/video{target}" if isinstance(target, int) else target
@@ -116,14 +141,14 @@ class VideoReader(Reader):
             if config.fps:
                 self.cap.set(cv2.CAP_PROP_FPS, config.fps)
         elif config.kind is SourceKind.FILE:
-            if not Path(target).is_file():
+            if not Path(config.camera).is_file():
                 raise InputError(f"video file {target} does not exist; expected a video (mp4, avi, ...), an image "
                                  f"folder or glob, a /dev/video device, an rtsp:// URL or 'sim'")
-            self.cap = cv2.VideoCapture(target)
+            self.cap = cv2.VideoCapture(config.camera)
             self._expected_frames = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         else:
-            api = cv2.CAP_GSTREAMER if "!" in target else cv2.CAP_FFMPEG
-            self.cap = cv2.VideoCapture(target, api)
+            api = cv2.CAP_GSTREAMER if "!" in config.camera else cv2.CAP_FFMPEG
+            self.cap = cv2.VideoCapture(config.camera, api)
         if not self.cap.isOpened():
             what = {SourceKind.DEVICE: "camera device", SourceKind.FILE: "video file",
                     SourceKind.STREAM: "stream"}[config.kind]
@@ -142,6 +167,7 @@ class VideoReader(Reader):
                 return None
             raise OSError(f"{self.name}: no frame from the camera")
         self._read += 1
+        self.problem = grey_fill(bgr)
         if bgr.ndim == 2:
             return cv2.cvtColor(bgr, cv2.COLOR_GRAY2RGB)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
@@ -172,8 +198,16 @@ class ImageFolderReader(Reader):
         while self._next < len(self.paths):
             path = self.paths[self._next]
             self._next += 1
+            try:
+                data = path.read_bytes()
+            except OSError as exc:
+                log.warning("skipping %s: %s", path, exc)
+                continue
+            # imread, not imdecode: imdecode refuses a truncated JPEG, imread decodes it with grey rows, and the
+            # marker check below then marks the frame invalid (it is counted and logged, not silently skipped).
             bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
             if bgr is not None:
+                self.problem = incomplete_jpeg_or_png(data) or grey_fill(bgr)
                 return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
             log.warning("skipping %s: not a readable image (corrupt or not an image)", path)
         return None
@@ -210,7 +244,6 @@ class SimReader(Reader):
         self.name = f"sim:{style}:{seed}"
         self.intrinsics = self.camera.intrinsics
         self.mount = self.camera.mount
-        self.last_state = None
 
     def read(self) -> Optional[np.ndarray]:
         if self._frames_left is not None:
@@ -218,7 +251,8 @@ class SimReader(Reader):
                 return None  # the flight is over: end the run cleanly
             self._frames_left -= 1
         rgb, _pose, self.last_state = self.camera.read()
-        return rgb
+        out: np.ndarray = rgb
+        return out
 
     def close(self) -> None:
         self.camera.close()
@@ -234,7 +268,6 @@ class PoseReplayReader(Reader):
     def __init__(self, inner: Reader, states: List[VehicleState]):
         self.inner, self.states = inner, states
         self.name = inner.name
-        self.last_state: Optional[VehicleState] = None
         self._index = 0
 
     @staticmethod
@@ -248,6 +281,7 @@ class PoseReplayReader(Reader):
 
     def read(self) -> Optional[np.ndarray]:
         rgb = self.inner.read()
+        self.problem = self.inner.problem
         if rgb is not None:
             self.last_state = self.states[self._index] if self._index < len(self.states) else None
             self._index += 1
@@ -280,7 +314,8 @@ class Grabber:
     reopen a failed live source.
     """
 
-    def __init__(self, config: SourceConfig, opener: Callable[[SourceConfig], Reader] = None, telemetry=None):
+    def __init__(self, config: SourceConfig, opener: Optional[Callable[[SourceConfig], Reader]] = None,
+                 telemetry: Optional[Any] = None):
         self.config = config
         self.opener = opener or open_reader
         self.telemetry = telemetry  # a TelemetryBuffer fed with the states of a simulated source
@@ -294,6 +329,19 @@ class Grabber:
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._next_id = 0
+        self._front: Optional[Frame] = None
+
+    def put_back(self, frame: Frame) -> None:
+        """Hand ``frame`` out again at the next ``next`` (the caller looked at the first frame before the loop)."""
+        self._front = frame
+
+    @property
+    def intrinsics(self) -> Optional[Intrinsics]:
+        return None if self.reader is None else self.reader.intrinsics
+
+    @property
+    def mount(self) -> Optional[Mount]:
+        return None if self.reader is None else self.reader.mount
 
     def start(self) -> Grabber:
         """Open the input now (so a missing camera is one clear error) and start the thread."""
@@ -304,6 +352,9 @@ class Grabber:
 
     def next(self, timeout_s: float = 1.0) -> Optional[Frame]:
         """The newest frame not yet taken, or None after ``timeout_s`` or at the end."""
+        if self._front is not None:
+            front, self._front = self._front, None
+            return front
         with self._cond:
             if self._slot is None and not self.ended:
                 self._cond.wait(timeout_s)
@@ -331,17 +382,19 @@ class Grabber:
                     backoff_s = min(backoff_s * 2.0, self.config.reopen_max_s)
                     continue
                 backoff_s = self.config.reopen_min_s
+            reader = self.reader
+            assert reader is not None  # opened just above
             try:
-                rgb = self.reader.read()
+                rgb = reader.read()
             except Exception as exc:  # a mid-run camera fault never stops the loop: reopen with back-off
                 self.faults += 1
                 log.warning("camera %s failed (%s); reopening with back-off", self.config.camera, exc)
-                self.reader.close()
+                reader.close()
                 self.reader = None
                 continue
             if rgb is None:
                 if self.config.loop and not self.config.kind.live:
-                    self.reader.close()
+                    reader.close()
                     self.reader = None
                     continue
                 break
@@ -349,8 +402,11 @@ class Grabber:
                 # Recorded input has no real capture time: stamp it when the pipeline can take it, so a slow
                 # model does not make every played-back frame "stale".
                 self._wait_for_free_slot()
-            frame = Frame(self._next_id, time.monotonic(), rgb, self.config.camera)
-            state = getattr(self.reader, "last_state", None)
+            problem = reader.problem
+            if problem:
+                log.warning("frame %d of %s is invalid: %s", self._next_id, self.config.camera, problem)
+            frame = Frame(self._next_id, time.monotonic(), rgb, self.config.camera, valid=not problem, reason=problem)
+            state = reader.last_state
             if state is not None and self.telemetry is not None:
                 self.telemetry.add_state(state, frame.capture_time_s)
             self._publish(frame)

@@ -1,10 +1,20 @@
-"""Telemetry samples matched to a frame's capture time (ARCHITECTURE.md §3: capture time, not inference end).
+"""Telemetry samples matched to a frame's capture time, with the trust rules of ARCHITECTURE.md §12.
 
-The link thread calls ``add_*`` as messages arrive; the pipeline asks ``state_at(capture_time_s)``.
-Autopilot timestamps (``time_boot_ms``) are mapped onto this computer's monotonic clock with the smallest
-observed (arrival - sent) offset, i.e. the sample that travelled fastest, so transport jitter does not smear
-the match. Attitude and position are interpolated between the two samples around the capture time, or taken
-from the nearest one within ``window_s``; anything older is ignored rather than guessed.
+The link thread calls ``add_*`` as messages arrive; the pipeline asks ``lookup(capture_time_s, now_s)``.
+
+- Clock: autopilot timestamps (``time_boot_ms``) are mapped onto this computer's monotonic clock by
+  :class:`ClockOffset`, a windowed jitter correction like ArduPilot's (GCS_Common.cpp, JitterCorrection): the
+  offset follows the fastest sample, is re-estimated from the fastest sample of every window (so a drifting
+  autopilot clock never loses telemetry for good), a sample is never mapped more than ``max_lag_s`` behind
+  its arrival, and a sample stamped from the future by more than ``max_future_s`` is dropped.
+- Plausibility: every field is gated (non-finite, tilt beyond the envelope, yaw out of range, negative or
+  too large height above ground, a rangefinder outside its own range); a rejected sample is counted by
+  reason and never used. Nothing here raises on a bad number.
+- Freshness: a match is fresh only when the newest accepted attitude arrived no longer than ``fresh_s``
+  ago on the companion's clock.
+
+Attitude and position are interpolated between the two samples around the capture time, or taken from the
+nearest one within ``window_s``; anything older is ignored rather than guessed.
 """
 from __future__ import annotations
 
@@ -12,9 +22,9 @@ import bisect
 import math
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass
-from typing import Deque, Optional, Tuple
+from typing import Deque, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -26,9 +36,62 @@ RANGEFINDER_DOWN = 25  # MAV_SENSOR_ROTATION_PITCH_270
 
 @dataclass(frozen=True)
 class TelemetryConfig:
+    """Matching, clock and plausibility settings (seconds, metres, radians)."""
+
     window_s: float = 0.25      # how far from the capture time a sample may be and still count
     history_s: float = 5.0      # how much history to keep
     reboot_jump_s: float = 2.0  # a remote clock that goes back this much means the autopilot rebooted
+    fresh_s: float = 0.4        # the newest attitude must have arrived at most this long ago
+    clock_window_s: float = 2.0  # the clock offset is re-estimated from the fastest sample of each window
+    max_lag_s: float = 0.5      # a sample is never mapped further than this behind its arrival (ArduPilot: 500 ms)
+    max_future_s: float = 0.5   # a sample stamped further than this in the future is dropped
+    max_tilt_rad: float = math.radians(60.0)  # |roll|, |pitch| beyond this are not a multicopter in flight
+    max_agl_m: float = 1000.0   # relative altitude above this is not believed
+    max_position_m: float = 1.0e5
+
+
+class ClockOffset:
+    """Autopilot-to-companion clock offset, re-estimated over a sliding window (never a minimum kept forever)."""
+
+    def __init__(self, config: TelemetryConfig):
+        self.config = config
+        self.offset_s: Optional[float] = None
+        self._window_start_s = 0.0
+        self._window_min_s = math.inf
+        self._last_remote_s = -math.inf
+        self._future_since_s: Optional[float] = None
+
+    def reset(self) -> None:
+        self.offset_s, self._future_since_s = None, None
+
+    def map(self, remote_s: float, arrival_s: float) -> Optional[float]:
+        """Local time of a remote timestamp, or None for a sample from the future (dropped)."""
+        c = self.config
+        if remote_s < self._last_remote_s - c.reboot_jump_s:
+            self.reset()  # the autopilot rebooted: its clock restarted
+        diff = arrival_s - remote_s
+        if self.offset_s is None:
+            self.offset_s, self._window_start_s, self._window_min_s = diff, arrival_s, diff
+        elif diff < self.offset_s - c.max_future_s:
+            # Stamped from the future: one glitch is dropped; a clock that stays ahead for a whole window
+            # has jumped, and is re-learnt from there.
+            if self._future_since_s is None:
+                self._future_since_s = arrival_s
+            if arrival_s - self._future_since_s < c.clock_window_s:
+                return None
+            self.offset_s, self._window_start_s, self._window_min_s = diff, arrival_s, diff
+        self._future_since_s = None
+        self._last_remote_s = remote_s
+        self.offset_s = min(self.offset_s, diff)           # a faster sample: adopt at once
+        self._window_min_s = min(self._window_min_s, diff)
+        if arrival_s - self._window_start_s >= c.clock_window_s:
+            self.offset_s = self._window_min_s             # forget older minima: a drifting clock is followed
+            self._window_start_s, self._window_min_s = arrival_s, diff
+        local = remote_s + self.offset_s
+        if local < arrival_s - c.max_lag_s:                # late by more than any transport: the clock drifted
+            self.offset_s = arrival_s - c.max_lag_s - remote_s
+            local = arrival_s - c.max_lag_s
+        return local
 
 
 class _Series:
@@ -38,15 +101,21 @@ class _Series:
         self.history_s = history_s
         self.times: Deque[float] = deque()
         self.values: Deque[np.ndarray] = deque()
+        self.last_arrival_s = -math.inf
 
-    def add(self, t_s: float, value: np.ndarray) -> None:
+    def add(self, t_s: float, value: np.ndarray, arrival_s: float) -> None:
         if self.times and t_s < self.times[-1]:
             return  # out-of-order sample (e.g. duplicated stream): keep the series sorted
         self.times.append(t_s)
         self.values.append(value)
+        self.last_arrival_s = max(self.last_arrival_s, arrival_s)
         while self.times and self.times[0] < t_s - self.history_s:
             self.times.popleft()
             self.values.popleft()
+
+    def clear(self) -> None:
+        self.times.clear()
+        self.values.clear()
 
     def at(self, t_s: float, window_s: float, angles: bool = False) -> Optional[np.ndarray]:
         if not self.times:
@@ -62,13 +131,30 @@ class _Series:
             delta = v1 - v0
             if angles:  # interpolate the short way round (yaw wraps at ±pi)
                 delta = (delta + math.pi) % (2 * math.pi) - math.pi
-            return v0 + w * delta
+            out: np.ndarray = v0 + w * delta
+            return out
         best = min((j for j in (before, after) if j is not None), key=lambda j: abs(times[j] - t_s))
         return self.values[best] if abs(times[best] - t_s) <= window_s else None
 
 
+@dataclass(frozen=True)
+class TelemetryMatch:
+    """The vehicle state at a capture time and, when it cannot be trusted, why (``reason`` empty = fresh)."""
+
+    state: Optional[VehicleState]
+    reason: str = ""
+
+    @property
+    def fresh(self) -> bool:
+        return self.state is not None and not self.reason
+
+
+def _finite(*values: float) -> bool:
+    return all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
+
+
 class TelemetryBuffer:
-    """Thread-safe store of attitude, local position and height above ground."""
+    """Thread-safe store of attitude, local position and height above ground, with counted rejections."""
 
     def __init__(self, config: TelemetryConfig = TelemetryConfig()):
         self.config = config
@@ -77,56 +163,104 @@ class TelemetryBuffer:
         self._position = _Series(config.history_s)
         self._range = _Series(config.history_s)
         self._rel_alt = _Series(config.history_s)
-        self._offset_s: Optional[float] = None
-        self._last_remote_s = -math.inf
+        self._clock = ClockOffset(config)
+        self._rejected: Counter[str] = Counter()
         self.samples = 0
 
-    def local_time(self, remote_ms: Optional[float], arrival_s: Optional[float] = None) -> float:
-        """Map an autopilot ``time_boot_ms`` onto the local monotonic clock."""
+    # -- intake (link thread) ----------------------------------------------------------------------------
+    def rejected(self) -> Dict[str, int]:
+        """Rejected samples by reason (a copy)."""
+        with self._lock:
+            return dict(self._rejected)
+
+    def reject(self, reason: str) -> None:
+        with self._lock:
+            self._rejected[reason] += 1
+
+    def local_time(self, remote_ms: Optional[float], arrival_s: Optional[float] = None) -> Optional[float]:
+        """Map an autopilot ``time_boot_ms`` onto the local monotonic clock (None: from the future, dropped)."""
         arrival_s = time.monotonic() if arrival_s is None else arrival_s
-        if remote_ms is None or remote_ms <= 0:
+        if remote_ms is None or not _finite(remote_ms) or remote_ms <= 0:
             return arrival_s
-        remote_s = remote_ms / 1000.0
-        if remote_s < self._last_remote_s - self.config.reboot_jump_s:
-            self._offset_s = None  # the autopilot rebooted: its clock restarted
-        self._last_remote_s = remote_s
-        offset = arrival_s - remote_s
-        if self._offset_s is None or offset < self._offset_s:
-            self._offset_s = offset
-        return remote_s + self._offset_s
+        return self._clock.map(remote_ms / 1000.0, arrival_s)
+
+    def _add(self, series: _Series, value: np.ndarray, remote_ms: Optional[float], arrival_s: Optional[float]) -> bool:
+        arrival = time.monotonic() if arrival_s is None else arrival_s
+        with self._lock:
+            t = self.local_time(remote_ms, arrival)
+            if t is None:
+                self._rejected["sample stamped from the future"] += 1
+                return False
+            series.add(t, value, arrival)
+            self.samples += 1
+            return True
 
     def add_attitude(self, roll_rad: float, pitch_rad: float, yaw_rad: float, remote_ms: Optional[float] = None,
-                     arrival_s: Optional[float] = None) -> None:
-        with self._lock:
-            self._attitude.add(self.local_time(remote_ms, arrival_s), np.array([roll_rad, pitch_rad, yaw_rad]))
-            self.samples += 1
+                     arrival_s: Optional[float] = None) -> bool:
+        c = self.config
+        if not _finite(roll_rad, pitch_rad, yaw_rad):
+            self.reject("attitude not finite")
+            return False
+        if abs(roll_rad) > c.max_tilt_rad or abs(pitch_rad) > c.max_tilt_rad:
+            self.reject("roll/pitch beyond the envelope")
+            return False
+        if abs(yaw_rad) > 2 * math.pi + 1e-3:
+            self.reject("yaw out of range")
+            return False
+        return self._add(self._attitude, np.array([roll_rad, pitch_rad, yaw_rad]), remote_ms, arrival_s)
 
     def add_position(self, north_m: float, east_m: float, down_m: float, remote_ms: Optional[float] = None,
-                     arrival_s: Optional[float] = None) -> None:
-        with self._lock:
-            self._position.add(self.local_time(remote_ms, arrival_s), np.array([north_m, east_m, down_m]))
-            self.samples += 1
+                     arrival_s: Optional[float] = None) -> bool:
+        if not _finite(north_m, east_m, down_m) or max(abs(north_m), abs(east_m), abs(down_m)) > self.config.max_position_m:
+            self.reject("local position not finite or too far")
+            return False
+        return self._add(self._position, np.array([north_m, east_m, down_m]), remote_ms, arrival_s)
 
     def add_relative_alt(self, alt_m: float, remote_ms: Optional[float] = None,
-                         arrival_s: Optional[float] = None) -> None:
-        with self._lock:
-            self._rel_alt.add(self.local_time(remote_ms, arrival_s), np.array([alt_m]))
-            self.samples += 1
+                         arrival_s: Optional[float] = None) -> bool:
+        if not _finite(alt_m):
+            self.reject("relative altitude not finite")
+            return False
+        if alt_m < 0:
+            self.reject("negative height above ground")
+            return False
+        if alt_m > self.config.max_agl_m:
+            self.reject("height above ground beyond its maximum")
+            return False
+        return self._add(self._rel_alt, np.array([alt_m]), remote_ms, arrival_s)
 
     def add_rangefinder(self, distance_m: float, remote_ms: Optional[float] = None,
-                        arrival_s: Optional[float] = None) -> None:
-        with self._lock:
-            self._range.add(self.local_time(remote_ms, arrival_s), np.array([distance_m]))
-            self.samples += 1
+                        arrival_s: Optional[float] = None, min_m: float = 0.0, max_m: float = math.inf) -> bool:
+        if not _finite(distance_m):
+            self.reject("rangefinder not finite")
+            return False
+        if not min_m <= distance_m <= max_m or distance_m <= 0:
+            self.reject("rangefinder outside its own range")
+            return False
+        return self._add(self._range, np.array([distance_m]), remote_ms, arrival_s)
 
     def add_state(self, state: VehicleState, local_time_s: float) -> None:
         """A whole state known at a local time (a simulated camera's perfect telemetry)."""
         a = state.attitude
         self.add_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad, arrival_s=local_time_s)
         if state.position_ned_m is not None:
-            self.add_position(*(float(v) for v in state.position_ned_m), arrival_s=local_time_s)
+            n, e, d = (float(v) for v in state.position_ned_m)
+            self.add_position(n, e, d, arrival_s=local_time_s)
         if state.agl_m is not None:
             self.add_relative_alt(float(state.agl_m), arrival_s=local_time_s)
+
+    def forget(self) -> None:
+        """Drop every sample (the autopilot changed or rebooted)."""
+        with self._lock:
+            for s in (self._attitude, self._position, self._range, self._rel_alt):
+                s.clear()
+            self._clock.reset()
+
+    # -- queries (pipeline thread) -----------------------------------------------------------------------
+    def last_arrival_s(self) -> float:
+        """When the newest accepted attitude arrived (local monotonic seconds; -inf if never)."""
+        with self._lock:
+            return self._attitude.last_arrival_s
 
     def state_at(self, capture_time_s: float) -> Optional[VehicleState]:
         """The vehicle state at a capture time, or None when no attitude sample is close enough."""
@@ -143,6 +277,22 @@ class TelemetryBuffer:
                             position_ned_m=None if pos is None else pos.astype(np.float64),
                             agl_m=agl, agl_source=source)
 
+    def lookup(self, capture_time_s: float, now_s: Optional[float] = None) -> TelemetryMatch:
+        """The state at a capture time with the freshness rule applied; ``reason`` says why it is not usable."""
+        now_s = time.monotonic() if now_s is None else now_s
+        last = self.last_arrival_s()
+        if last == -math.inf:
+            rejected = self.rejected()
+            detail = f" ({sum(rejected.values())} rejected: {max(rejected, key=rejected.__getitem__)})" if rejected else ""
+            return TelemetryMatch(None, "no telemetry" + detail)
+        age = now_s - last
+        if age > self.config.fresh_s:
+            return TelemetryMatch(None, f"telemetry stale: last attitude {age:.2f} s ago")
+        state = self.state_at(capture_time_s)
+        if state is None:
+            return TelemetryMatch(None, f"no telemetry within {self.config.window_s:g} s of the capture time")
+        return TelemetryMatch(state)
+
 
 def _height_above_ground(rng: Optional[np.ndarray], rel: Optional[np.ndarray],
                          att: np.ndarray) -> Tuple[Optional[float], str]:
@@ -151,6 +301,6 @@ def _height_above_ground(rng: Optional[np.ndarray], rel: Optional[np.ndarray],
         tilt = math.cos(float(att[0])) * math.cos(float(att[1]))
         if tilt > 0.5:
             return float(rng[0]) * tilt, "rangefinder"
-    if rel is not None:
+    if rel is not None and rel[0] >= 0:
         return float(rel[0]), "relative_alt"
     return None, ""

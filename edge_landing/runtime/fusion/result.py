@@ -1,0 +1,17 @@
+"""What fusion hands to the next stages: the target and the grid it was chosen on (ARCHITECTURE.md §6)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+from edge_landing.runtime.core.messages import Target
+from edge_landing.runtime.fusion.grid import GridView
+
+
+@dataclass(frozen=True)
+class FusionResult:
+    """One frame's fusion output. ``grid`` is the snapshot judged for this frame, or None when this frame did
+    not reach the grid (invalid prediction, stale frame, ...); readers never reach into the fuser for it."""
+
+    target: Target
+    grid: Optional[GridView] = None

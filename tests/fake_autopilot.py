@@ -1,0 +1,95 @@
+"""A scriptable fake autopilot for the trust tests: a TEST DOUBLE (a real autopilot cannot be installed here).
+
+Real pymavlink on both ends over loopback UDP (or TCP): it listens on ``udpin:127.0.0.1:PORT`` (or
+``tcpin:``), records every message edge-run sends with its arrival time, and, once edge-run is heard, calls
+``script(fake, t_s)`` every tick (``t_s`` = seconds since edge-run was first heard). The script decides what
+to send; :meth:`healthy` sends what a well-behaved ArduPilot would (HEARTBEAT, ATTITUDE, LOCAL_POSITION_NED,
+GLOBAL_POSITION_INT), with ``time_boot_ms`` from this fake's own clock.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Callable, List, Optional, Tuple
+
+from edge_landing.runtime.io.mavlink_conn import load_mavutil
+
+Script = Callable[["FakeAutopilot", float], None]
+
+
+class FakeAutopilot:
+    def __init__(self, port: int, script: Script, rate_hz: float = 30.0, tcp: bool = False, sysid: int = 1):
+        self.mavutil = load_mavutil()
+        url = f"{'tcpin' if tcp else 'udpin'}:127.0.0.1:{port}"
+        self.conn = self.mavutil.mavlink_connection(url, source_system=sysid, source_component=1)
+        self.script, self.rate_hz, self.tcp = script, rate_hz, tcp
+        self.messages: List[Tuple[float, object]] = []   # (arrival monotonic s, message)
+        self.heard_s: Optional[float] = None             # monotonic time edge-run was first heard
+        self.read = True                                 # False: stop reading (a stuck peer)
+        self.errors: List[str] = []
+        self._t0 = time.monotonic()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> FakeAutopilot:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=3)
+        self.conn.close()
+
+    # -- what edge-run sent ---------------------------------------------------------------------------
+    def of_type(self, kind: str) -> List[Tuple[float, object]]:
+        return [(t, m) for t, m in list(self.messages) if m.get_type() == kind]
+
+    def targets_between(self, t0_s: float, t1_s: float) -> list:
+        """LANDING_TARGETs that arrived between two script times (seconds since edge-run was heard)."""
+        if self.heard_s is None:
+            return []
+        return [m for t, m in self.of_type("LANDING_TARGET") if t0_s <= t - self.heard_s < t1_s]
+
+    def texts(self) -> List[str]:
+        return [m.text for _, m in self.of_type("STATUSTEXT")]
+
+    # -- what the script can send ---------------------------------------------------------------------
+    def boot_ms(self, clock_rate: float = 1.0, offset_ms: float = 0.0) -> int:
+        return int((time.monotonic() - self._t0) * 1000 * clock_rate + offset_ms) + 1
+
+    def healthy(self, boot_ms: Optional[int] = None, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0,
+                ned: Tuple[float, float, float] = (5.0, -3.0, -10.0), rel_alt_m: Optional[float] = None,
+                mav: object = None) -> None:
+        m = self.mavutil.mavlink
+        mav = mav or self.conn.mav
+        ms = self.boot_ms() if boot_ms is None else boot_ms
+        rel = -ned[2] if rel_alt_m is None else rel_alt_m
+        mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE)
+        mav.attitude_send(ms, roll, pitch, yaw, 0.0, 0.0, 0.0)
+        mav.local_position_ned_send(ms, *ned, 0.0, 0.0, 0.0)
+        mav.global_position_int_send(ms, 0, 0, 0, int(rel * 1000) if math.isfinite(rel) else 0, 0, 0, 0, 0)
+
+    def _run(self) -> None:
+        next_tick = 0.0
+        while not self._stop.is_set():
+            if self.read or not self.tcp:
+                msg = self.conn.recv_match(blocking=True, timeout=0.005)
+                if msg is not None and msg.get_type() != "BAD_DATA":
+                    now = time.monotonic()
+                    if self.read:
+                        self.messages.append((now, msg))
+                    if self.heard_s is None:
+                        self.heard_s = now
+            else:
+                time.sleep(0.005)
+            now = time.monotonic()
+            if self.heard_s is not None and now >= next_tick and self._connected():
+                next_tick = now + 1.0 / self.rate_hz
+                try:
+                    self.script(self, now - self.heard_s)
+                except Exception as exc:  # a send into a closed socket: note it, keep the fake alive
+                    self.errors.append(str(exc))
+
+    def _connected(self) -> bool:
+        return bool(self.conn.port is not None) if self.tcp else bool(self.conn.clients)
