@@ -134,7 +134,8 @@ def test_edge_run_flies_frames_without_the_workstation_parts(tmp_path: Path) -> 
     ''')
     assert result["exit"] == 0
     _assert_clean(result)
-    decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    header, *decisions = [json.loads(line) for line in log_path.read_text().splitlines()]
+    assert "run" in header
     assert [d["frame"] for d in decisions] == [0, 1, 2]
     assert record.stat().st_size > 0
 

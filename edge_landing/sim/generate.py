@@ -74,7 +74,8 @@ def frame_rng(seed: int, frame: int, purpose: int) -> np.random.Generator:
 
 def pose_of(frame: int, s: VehicleSample) -> Pose:
     a = s.attitude
-    return Pose(int(frame), float(s.t_s), tuple(float(v) for v in s.position_ned_m), float(a.roll_rad),
+    n, e, d = (float(v) for v in s.position_ned_m)
+    return Pose(int(frame), float(s.t_s), (n, e, d), float(a.roll_rad),
                 float(a.pitch_rad), float(a.yaw_rad), float(s.agl_m))
 
 

@@ -233,7 +233,8 @@ class TopDownGrid:
 
     @property
     def seen(self) -> np.ndarray:
-        return self._acc[_SEEN]
+        seen: np.ndarray = self._acc[_SEEN]
+        return seen
 
     def clear(self, ref_down_m: float = 0.0) -> None:
         """Forget everything. Heights are stored relative to ``ref_down_m`` (keeps Σh² well conditioned)."""

@@ -42,7 +42,7 @@ def grid_inset(grid: Optional[GridView], target: Target, state: Optional[Vehicle
     if grid is None:
         return None
     rows, cols = grid.shape
-    img = np.full((rows, cols, 3), 60, dtype=np.uint8)
+    img: np.ndarray = np.full((rows, cols, 3), 60, dtype=np.uint8)
     img[grid.observed] = (170, 40, 40)
     img[grid.landable] = (40, 190, 60)
     img = np.ascontiguousarray(img[::-1])  # row 0 is the southmost: flip so north is up
