@@ -1,7 +1,7 @@
 """The model shipped in the package: its contract, and accuracy floors on freshly rendered unseen scenes of both styles.
 
 Floors are set well below what was measured when the model was shipped (see MEASURED below and
-edge_runtime/models/edgenet.json), so they catch a broken or placeholder model, not noise.
+edge_landing/runtime/models/edgenet.json), so they catch a broken or placeholder model, not noise.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Fusion speed: per-frame latency of LandingFuser.update on an analytic scene (ARCHITECTURE.md §6, §9).
 
-    python -m benchmarks.bench_fusion --frames 300 --altitude 40 --mode ned
+    python -m edge_landing.benchmarks.bench_fusion --frames 300 --altitude 40 --mode ned
 
 The scene is ground plus a field of boxes (buildings), rendered by exact ray casting at the input size and
 fed as metric depth with one-hot HVO, the way the network's outputs reach fusion. Each frame moves the

@@ -6,9 +6,9 @@ timed. Each round runs, in rotating order, (a) the model alone over every frame,
 with fusion overlapping the next inference, (c) the same pipeline strictly sequential. Ratios are taken
 between modes of the same round, so a noisy shared machine moves all of them together.
 
-    python -m benchmarks.bench_pipeline --frames 40 --rounds 3            # sim frames, shipped model
-    python -m benchmarks.bench_pipeline --camera flight.mp4 --model m.onnx --out bench.json
-    python -m benchmarks.bench_pipeline --depth-model small_depth.int8.onnx --hvo-model small_hvo.int8.onnx
+    python -m edge_landing.benchmarks.bench_pipeline --frames 40 --rounds 3            # sim frames, shipped model
+    python -m edge_landing.benchmarks.bench_pipeline --camera flight.mp4 --model m.onnx --out bench.json
+    python -m edge_landing.benchmarks.bench_pipeline --depth-model small_depth.int8.onnx --hvo-model small_hvo.int8.onnx
 """
 from __future__ import annotations
 

@@ -3,10 +3,10 @@
 Renders fresh scenes with the ``edge-sim`` command (seeds of the user's choosing), then reads the model's
 layout from its ONNX metadata by hand and runs it with a plain ONNX Runtime session: its own preprocessing
 (OpenCV resize, scale, mean/std, layout), its own depth decoding and its own metrics. Nothing from
-``edge_runtime.inference``, ``edge_runtime.metrics`` or ``edge_runtime.evaluation`` is used, so an error there
+``edge_landing.runtime.perception.inference``, ``edge_landing.evaluation.metrics`` or ``edge_landing.evaluation.evaluate`` is used, so an error there
 cannot hide here.
 
-    python -m benchmarks.check_shipped --seeds suburban:901 urban:902 --frames 40 --out out/check_shipped
+    python -m edge_landing.benchmarks.check_shipped --seeds suburban:901 urban:902 --frames 40 --out out/check_shipped
 
 Prints one row per scene and model and writes OUT/check.json. Goals (issue 7): horizontal precision >= 0.90
 and δ1 >= 0.80 after one per-scene median scale, on both styles.
@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
-MODELS = Path(__file__).resolve().parents[1] / "edge_runtime" / "models"
+MODELS = Path(__file__).resolve().parents[1] / "runtime" / "models"
 GOAL_H_PRECISION, GOAL_DELTA1 = 0.90, 0.80
 
 

@@ -9,7 +9,7 @@
 Steps: build the network, load the authors' checkpoint (or keep random weights, loudly), export at a fixed
 input size and opset ≤ 20 with the legacy exporter (the dynamo exporter is the fall-back), write the model
 contract into ``metadata_props``, run ``onnx.checker``, then run ONNX Runtime through
-``edge_runtime.inference.OnnxModel`` (which validates the contract) against PyTorch on random images.
+``edge_landing.runtime.perception.inference.OnnxModel`` (which validates the contract) against PyTorch on random images.
 The file is written to a temporary name and renamed only when everything agreed, so a failed export leaves
 nothing behind.
 """

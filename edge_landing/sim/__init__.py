@@ -5,7 +5,7 @@ gentle terrain; ``urban``: flat-roofed blocks of many heights, streets, plazas, 
 with Embree from a camera 45° down, 30–90 m above the surface below, giving per pixel planar z-depth (NaN
 sky), camera-frame normals, HVO labels (thresholds in scene.json) and a shaded RGB image (sun and sky light,
 cast shadows, textures; haze, rain, motion blur, noise and exposure vary with the seed). World frame is
-local NED; the camera model is the runtime's own (``edge_runtime.camera``).
+local NED; the camera model is the runtime's own (``edge_landing.runtime.core.camera``).
 
 Command line: ``edge-sim OUT --frames N --style suburban|urban --seed S [--flight] [--preview]``.
 
@@ -19,7 +19,7 @@ Python::
 
     # a live camera flying a landing approach (for edge-run --camera sim)
     cam = sim.SimCamera(style="suburban", seed=0, width=320, height=240, fps=10.0)
-    rgb, pose, state = cam.read()        # uint8 H×W×3, edge_runtime.scene.Pose, edge_runtime.VehicleState
+    rgb, pose, state = cam.read()        # uint8 H×W×3, edge_landing.runtime.io.poses.Pose, edge_landing.runtime.core.messages.VehicleState
     truth = cam.read_truth()             # SimFrame: .rgb, .pose, .state, .geometry.depth_m / .hvo / .normals
     cam.intrinsics, cam.mount            # what the runtime needs to back-project
 

@@ -3,7 +3,7 @@
     from edge_landing.export.zoo import get_arch
     spec = get_arch("safeuav-small")
     model = spec.build(Task.HVO)                     # torch.nn.Module
-    contract = spec.contract(Task.HVO, 240, 320)     # edge_runtime ModelContract for the ONNX metadata
+    contract = spec.contract(Task.HVO, 240, 320)     # runtime ModelContract for the ONNX metadata
 
 Each architecture lives in its own module that defines ``ARCH_SPEC``; modules are imported lazily so that
 building one network does not import the others.

@@ -2,8 +2,8 @@
 
 Per frame: resize to the working size, smooth the depth a little (pixel noise would read as slope),
 back-project, rotate into a gravity-aligned frame (mount and attitude at capture), slope from the depth's
-own normals, rasterise into a top-down grid (edge_runtime.grid), clearance by distance transform, then
-pick the spot (edge_runtime.landing) and express it for the autopilot.
+own normals, rasterise into a top-down grid (edge_landing.runtime.fusion.grid), clearance by distance transform, then
+pick the spot (edge_landing.runtime.fusion.landing) and express it for the autopilot.
 Pure numpy/OpenCV; ``update`` never raises: every failure is a ``Target.none(..., reason)``.
 
     fuser = LandingFuser(FusionConfig(), Intrinsics.from_hfov(640, 480), Mount())
@@ -16,7 +16,7 @@ Frames: without a vehicle position the grid is rebuilt each frame around the veh
 its evidence decaying with ``decay_s``, so the target stays put in the world while the vehicle moves. Each
 cell is judged within its frame (network depth scale wanders ~1 % between frames, more than the 0.1 m
 spread limit at 40-80 m) and only the verdicts are accumulated: a cell is landable while at least
-``min_vote_share`` of its decayed observations found it landable (edge_runtime.grid.TopDownGrid), so an
+``min_vote_share`` of its decayed observations found it landable (edge_landing.runtime.fusion.grid.TopDownGrid), so an
 obstacle that appears on a cell seen clear for long outvotes it after decay_s·ln(1/min_vote_share) (~1 s).
 Depth is required. HVO is optional: without it (a depth-only model) cells are judged by the depth slope and
 height spread alone and the confidence is multiplied by ``depth_only_confidence`` (degraded mode, said in
