@@ -3,8 +3,8 @@
 Renders fresh scenes with the ``edge-sim`` command (seeds of the user's choosing), then reads the model's
 layout from its ONNX metadata by hand and runs it with a plain ONNX Runtime session: its own preprocessing
 (OpenCV resize, scale, mean/std, layout), its own depth decoding and its own metrics. Nothing from
-``edge_landing.runtime.perception.inference``, ``edge_landing.evaluation.metrics`` or ``edge_landing.evaluation.evaluate`` is used, so an error there
-cannot hide here.
+``edge_landing.runtime.perception.inference``, ``edge_landing.evaluation.metrics`` or
+``edge_landing.evaluation.evaluate`` is used, so an error there cannot hide here.
 
     python -m edge_landing.benchmarks.check_shipped --seeds suburban:901 urban:902 --frames 40 --out out/check_shipped
 

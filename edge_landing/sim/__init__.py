@@ -19,7 +19,7 @@ Python::
 
     # a live camera flying a landing approach (for edge-run --camera sim)
     cam = sim.SimCamera(style="suburban", seed=0, width=320, height=240, fps=10.0)
-    rgb, pose, state = cam.read()        # uint8 H×W×3, edge_landing.runtime.io.poses.Pose, edge_landing.runtime.core.messages.VehicleState
+    rgb, pose, state = cam.read()        # uint8 H×W×3, runtime.io.poses.Pose, runtime.core.messages.VehicleState
     truth = cam.read_truth()             # SimFrame: .rgb, .pose, .state, .geometry.depth_m / .hvo / .normals
     cam.intrinsics, cam.mount            # what the runtime needs to back-project
 
