@@ -152,6 +152,18 @@ def test_sim_source_without_the_extra_names_it(monkeypatch):
         Grabber(SourceConfig.from_string("sim")).start()
 
 
+@pytest.mark.parametrize("missing", ["trimesh", "embreex"])
+def test_sim_source_checks_the_ray_caster_before_building_a_world(monkeypatch, caplog, missing):
+    import sys
+
+    from edge_landing.runtime.core.errors import MissingExtraError
+
+    monkeypatch.setitem(sys.modules, missing, None)
+    with caplog.at_level("INFO"), pytest.raises(MissingExtraError, match=rf"'{missing}'.*edge-landing\[sim\]"):
+        Grabber(SourceConfig.from_string("sim")).start()
+    assert not any("building" in r.getMessage() for r in caplog.records)
+
+
 @pytest.mark.slow
 def test_sim_source_gives_frames_and_perfect_telemetry():
     from edge_landing.runtime.io.telemetry import TelemetryBuffer

@@ -227,8 +227,14 @@ class SimReader(Reader):
     DEFAULT_SIZE = (160, 120)  # renders at about 15 frames/s on one busy core
 
     def __init__(self, config: SourceConfig):
-        from edge_landing.runtime.core.errors import require_extra
+        import importlib.util
 
+        from edge_landing.runtime.core.errors import MissingExtraError, require_extra
+
+        for needed in ("trimesh", "embreex"):  # checked before any work: the world is built lazily
+            if importlib.util.find_spec(needed) is None:
+                raise MissingExtraError(f"the sim camera needs '{needed}', which is not installed: "
+                                        "pip install 'edge-landing[sim]'")
         sim = require_extra("edge_landing.sim", "sim")
         style, seed = "suburban", 0
         for part in config.camera.split(":")[1:]:
