@@ -186,6 +186,7 @@ def run(cfg: RunConfig, out=None) -> int:
     out = out or sys.stdout
     from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
     from edge_landing.runtime.io.overlay import OverlayRecorder
+    from edge_landing.runtime.perception.input_fit import describe_for_model
     from edge_landing.runtime.perception.scale import (
         AltitudeScaleEstimator,
         load_calibration,
@@ -218,6 +219,8 @@ def run(cfg: RunConfig, out=None) -> int:
             raise InputError(f"camera {cfg.camera} gave no frame within 30 s"
                              + (" (the input is empty or unreadable)" if grabber.ended else ""))
         intrinsics, mount = camera_geometry(cfg, grabber, first.rgb)
+        sizes = describe_for_model(models[0], first.rgb.shape[:2], fusion_cfg.working_hw)
+        print(f"edge-run: {sizes}", file=out, flush=True)
         fuser = LandingFuser(fusion_cfg, intrinsics, mount)
         estimator = AltitudeScaleEstimator() if cfg.altitude_scale else None
         scale = ScaleStage(calibration, estimator, intrinsics, mount)
@@ -238,6 +241,7 @@ def run(cfg: RunConfig, out=None) -> int:
         stack.callback(signal.signal, signal.SIGINT, previous)
         summary = pipeline.run()
     print(summary.table(), file=out, flush=True)
+    print(sizes, file=out, flush=True)
     return 0
 
 
