@@ -12,7 +12,7 @@ def test_edge_run_with_no_camera_flies_the_builtin_sim_and_finds_targets():
     out = io.StringIO()
     assert run(config_from_args(["--max-frames", "12"]), out=out) == 0
     text = out.getvalue()
-    assert "sim:" in text or "sim" in text.splitlines()[0]
+    assert any(line.startswith("edge-run: sim") for line in text.splitlines()), text
     summary = [line for line in text.splitlines() if line.startswith("targets ")]
     assert summary, text
     frames = int(summary[0].split()[1].split("/")[1])

@@ -231,6 +231,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
     out = out or sys.stdout
     from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
     from edge_landing.runtime.io.overlay import OverlayRecorder
+    from edge_landing.runtime.perception.input_fit import describe_for_model
     from edge_landing.runtime.perception.scale import (
         AltitudeScaleEstimator,
         load_calibration,
@@ -266,6 +267,8 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
                              + (" (the input is empty or unreadable)" if grabber.ended else ""))
         grabber.put_back(first)
         intrinsics, mount = camera_geometry(cfg, grabber, first)
+        sizes = describe_for_model(inference.models[0], first.rgb.shape[:2], fusion_cfg.working_hw)
+        print(f"edge-run: {sizes}", file=out, flush=True)
         fuser = LandingFuser(fusion_cfg, intrinsics, mount)
         estimator = AltitudeScaleEstimator() if cfg.altitude_scale else None
         scale = ScaleStage(calibration, estimator, intrinsics, mount, require_metric=bool(cfg.mav))
@@ -292,6 +295,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
         stack.callback(signal.signal, signal.SIGINT, previous)
         summary = pipeline.run()
     print(summary.table(), file=out, flush=True)
+    print(sizes, file=out, flush=True)
     return 0
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from edge_landing.runtime.core.errors import ContractError, InputError
 from edge_landing.runtime.core.messages import Prediction
 from edge_landing.runtime.perception.contract import Layout, ModelContract
+from edge_landing.runtime.perception.input_fit import InputFit
 
 
 @dataclass(frozen=True)
@@ -121,10 +122,20 @@ class OnnxModel:
         return dict(zip(names, values))
 
     # -- decoding -------------------------------------------------------------------------------------
+    @property
+    def output_stride(self) -> int:
+        """Input size / output size of the depth head (1 without one)."""
+        return self.contract.depth.stride if self.contract.depth is not None else 1
+
+    def fit(self, frame_hw: Tuple[int, int]) -> InputFit:
+        """Where a frame of ``frame_hw`` sits in this model's input (letterboxed unless it is 4:3 like the input)."""
+        return InputFit.for_frame(int(frame_hw[0]), int(frame_hw[1]), *self.input_hw)
+
     def decode(self, outputs: Dict[str, np.ndarray], out_hw: Optional[Tuple[int, int]] = None,
-               scale: float = 1.0) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
-        """Raw outputs -> (depth_m H×W, hvo_prob H×W×3) at ``out_hw`` (default: the model's output size)."""
-        return decode_outputs(outputs, self.contract, out_hw, scale)
+               scale: float = 1.0, fit: Optional[InputFit] = None) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+        """Raw outputs -> (depth_m H×W, hvo_prob H×W×3) of the image part given by ``fit`` (default: all of the
+        output), at ``out_hw`` (default: the output's own resolution)."""
+        return decode_outputs(outputs, self.contract, out_hw, scale, fit)
 
     def predict(self, rgb: np.ndarray, frame_id: int = 0, capture_time_s: float = 0.0,
                 out_hw: Optional[Tuple[int, int]] = None, scale: float = 1.0) -> Prediction:
@@ -134,7 +145,7 @@ class OnnxModel:
         t1 = time.perf_counter()
         outputs = self.run(tensor)
         t2 = time.perf_counter()
-        depth, hvo = self.decode(outputs, out_hw, scale)
+        depth, hvo = self.decode(outputs, out_hw, scale, self.fit(rgb.shape[:2]))
         t3 = time.perf_counter()
         valid, reason = True, ""
         if depth is not None and not np.isfinite(depth).any():
@@ -154,12 +165,12 @@ def check_image(rgb: np.ndarray) -> None:
 
 
 def preprocess(rgb: np.ndarray, contract: ModelContract) -> np.ndarray:
-    """Resize to the model's fixed size, x = (rgb*scale - mean)/std, in the contract's layout and colour order."""
+    """Fit into the model's fixed size (resized, letterboxed when not of the input's aspect: input_fit.InputFit),
+    x = (rgb*scale - mean)/std, in the contract's layout and colour order."""
     check_image(rgb)
     spec = contract.input
     if rgb.shape[:2] != (spec.height, spec.width):
-        shrinking = rgb.shape[0] > spec.height
-        rgb = cv2.resize(rgb, (spec.width, spec.height), interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)
+        rgb = InputFit.for_frame(rgb.shape[0], rgb.shape[1], spec.height, spec.width).place(rgb)
     # (rgb*scale - mean)/std folded into one multiply-add per channel, written straight into the output layout:
     # this runs on every frame, and the naive chain of whole-image temporaries cost ~1.5 ms at 240x320.
     gain = np.float32(spec.scale) / np.asarray(spec.std, np.float32)
@@ -193,10 +204,13 @@ def _single_map(y: np.ndarray, layout: Layout, name: str) -> np.ndarray:
 
 
 def decode_outputs(outputs: Dict[str, np.ndarray], contract: ModelContract, out_hw: Optional[Tuple[int, int]] = None,
-                   scale: float = 1.0) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+                   scale: float = 1.0, fit: Optional[InputFit] = None) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+    """Metric depth and HVO probabilities of the image part (``fit``; default all of it), at ``out_hw``."""
     depth = hvo = None
     if contract.depth is not None:
         y = _single_map(outputs[contract.depth.output], contract.depth.layout, contract.depth.output)
+        if fit is not None:
+            y = fit.crop(y)
         depth = contract.depth.to_metres(y)
         if out_hw is not None and depth.shape != tuple(out_hw):
             depth = cv2.resize(depth, (out_hw[1], out_hw[0]), interpolation=cv2.INTER_LINEAR)
@@ -209,6 +223,8 @@ def decode_outputs(outputs: Dict[str, np.ndarray], contract: ModelContract, out_
         if logits.ndim != 3 or logits.shape[2] != 3:
             raise ContractError(f"HVO output '{contract.hvo.output}' decodes to shape {logits.shape}; expected H×W×3")
         logits = logits.astype(np.float32)
+        if fit is not None:
+            logits = fit.crop(logits)
         if out_hw is not None and logits.shape[:2] != tuple(out_hw):
             logits = cv2.resize(logits, (out_hw[1], out_hw[0]), interpolation=cv2.INTER_LINEAR)
         e = np.exp(logits - logits.max(axis=2, keepdims=True))
