@@ -45,7 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--figures", metavar="DIR", help="write a qualitative grid PNG into this folder")
     p.add_argument("--figure-frames", type=int, default=4, metavar="N", help="frames in the grid (default 4)")
     p.add_argument("--paper", nargs="?", const="airsimnc", choices=[d.value for d in PaperDataset],
-                   help="print the paper's rows beside (airsimnc = Tables 5–7, default; safeuav = Tables 2–4); "
+                   help="print the paper's rows beside, labelled as another dataset's (not comparable: other images "
+                        "and base rates) (airsimnc = Tables 5–7, default; safeuav = Tables 2–4); "
                         "give it after the paths or as --paper=SET")
     p.add_argument("--min-depth", type=float, default=None,
                    help="valid ground truth above this, metres (default: the models' contract min_depth)")
@@ -73,6 +74,32 @@ def _table(title: str, header: Sequence[str], rows: Sequence[Sequence[str]]) -> 
     return "\n".join([title, line(header), "-" * len(line(header)), *(line(r) for r in rows)])
 
 
+PAPER_SOURCE = {PaperDataset.AIRSIMNC: "AirSimNC, the paper's zero-shot set rendered in AirSim",
+                PaperDataset.SAFEUAV: "SafeUAV's Google-Earth-derived set"}
+
+
+def _paper_tag(paper: PaperTables) -> str:
+    return f"[{paper.dataset.value}: other dataset]"
+
+
+def honest_table(hvo_models: Sequence[dict[str, Any]]) -> str:
+    """Horizontal precision beside its base rate and lift, mIoU, and the landing figure (when scored)."""
+    rows = []
+    for m in hvo_models:
+        b = m["hvo"]["baseline"]
+        land = m.get("landable") or {}
+        rows.append([m["name"], _fmt(b["horizontal_precision"]), _fmt(b["horizontal_base_rate"]),
+                     _fmt(b["horizontal_lift"]), _fmt(b["miou"]), _fmt(land.get("landable_precision")),
+                     _fmt(land.get("landable_base_rate")), _fmt(land.get("landable_lift")),
+                     _fmt(land.get("called_share"))])
+    return _table("Honest figures: H precision vs its base rate (share of labelled pixels that are horizontal = the "
+                  "precision of calling everything horizontal) and the lift over it; mIoU; landable precision = share "
+                  "of pixels the runtime's fuser calls landable that the same fuser on the ground truth finds landable "
+                  "(– = no poses.csv/ground truth), beside its base rate",
+                  ["model", "H prec", "H base", "H lift", "mIoU", "land prec", "land base", "land lift",
+                   "called"], rows)
+
+
 def format_tables(result: dict[str, Any], paper: Optional[PaperTables] = None) -> str:
     """The console report: depth, SSIM/Median Rel, HVO (only the tables the models and scene allow)."""
     cfg = result["config"]
@@ -94,7 +121,7 @@ def format_tables(result: dict[str, Any], paper: Optional[PaperTables] = None) -
                     rows.append([prefix + m["name"], *(_fmt(m["depth"][key][k]) for _, k in DEPTH_COLUMNS)])
         if paper is not None:
             for r in paper.depth:
-                rows.append([f"paper {'* ' if r.median_scaled else ''}{r.model}", _fmt(r.a1), _fmt(r.a2),
+                rows.append([f"paper {'* ' if r.median_scaled else ''}{r.model} {_paper_tag(paper)}", _fmt(r.a1), _fmt(r.a2),
                              _fmt(r.a3), _fmt(r.abs_rel), "–", _fmt(r.rms), "–", _fmt(r.log10), "–"])
         n = paper.table_numbers[0] if paper else "2/5"
         out += ["", _table(f"Depth (Table {n} style; plain = raw model output, * = per-image median-scaled, "
@@ -111,7 +138,7 @@ def format_tables(result: dict[str, Any], paper: Optional[PaperTables] = None) -
                            ["model", "median", "min", "max", "calibration"], scale_rows)]
         rows = [[m["name"], _fmt(m["depth"]["ssim"]), _fmt(m["depth"]["median_rel"])] for m in depth_models]
         if paper is not None:
-            rows += [[f"paper {r.model}", _fmt(r.ssim), _fmt(r.median_rel)] for r in paper.ssim]
+            rows += [[f"paper {r.model} {_paper_tag(paper)}", _fmt(r.ssim), _fmt(r.median_rel)] for r in paper.ssim]
         n = paper.table_numbers[1] if paper else "3/6"
         out += ["", _table(f"SSIM and Median Rel (Table {n} style; Median Rel > 0 = predictions shorter)",
                            ["model", "SSIM", "Median Rel"], rows)]
@@ -125,11 +152,16 @@ def format_tables(result: dict[str, Any], paper: Optional[PaperTables] = None) -
             models = list(dict.fromkeys(r.model for r in paper.hvo))
             ranked = sorted(paper.hvo, key=lambda r: (models.index(r.model),
                                                      order.index(r.cls) if r.cls in order else len(order)))
-            rows += [[f"paper {r.model}", r.cls, _fmt(r.accuracy), _fmt(r.precision), _fmt(r.recall), _fmt(r.iou)]
-                     for r in ranked]
+            rows += [[f"paper {r.model} {_paper_tag(paper)}", r.cls, _fmt(r.accuracy), _fmt(r.precision), _fmt(r.recall),
+                      _fmt(r.iou)] for r in ranked]
         n = paper.table_numbers[2] if paper else "4/7"
         out += ["", _table(f"HVO, each class against the rest (Table {n} style)",
                            ["model", "class", *(c for c, _ in HVO_COLUMNS)], rows)]
+        out += ["", honest_table(hvo_models)]
+    if paper is not None:
+        out += ["", f"note: rows marked 'paper … {_paper_tag(paper)}' are the paper's published figures on another "
+                    f"dataset ({paper.dataset.value}: {PAPER_SOURCE[paper.dataset]}), other images, labels and base "
+                    f"rates; they are NOT comparable with this scene's rows, only printed for reference"]
     for m in result["models"]:
         if not m["depth"] and not m["hvo"]:
             out.append(f"\nnote: {m['name']} ({m['task']}) has nothing to be scored against in this scene")

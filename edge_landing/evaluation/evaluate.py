@@ -15,6 +15,7 @@ from typing import Any, Dict, Iterable, List, Optional, Sequence
 
 import numpy as np
 
+from edge_landing.evaluation.landable import LandableAccumulator
 from edge_landing.evaluation.metrics import (
     Averaging,
     DepthAccumulator,
@@ -26,6 +27,7 @@ from edge_landing.evaluation.metrics import (
     valid_mask,
 )
 from edge_landing.evaluation.scene import Scene
+from edge_landing.runtime.core.camera import Attitude
 from edge_landing.runtime.core.errors import InputError, SceneError
 from edge_landing.runtime.core.labels import HVO_CLASSES
 from edge_landing.runtime.core.messages import Prediction
@@ -86,11 +88,15 @@ class ModelScore:
         self.ssim, self.median_rel = MeanAccumulator(), MeanAccumulator()
         self.ratios: List[float] = []
         self.hvo = HvoAccumulator(config.hvo_averaging)
+        # The landing figure needs depth and HVO heads, both ground truths and the frames' attitudes.
+        self.do_landable = task.has_depth and task.has_hvo and scene.has_depth and scene.has_hvo
+        self.landable = LandableAccumulator()
+        self.meta = scene.meta
         self.per_frame: List[dict] = []
         self.invalid_frames: List[str] = []
 
     def add(self, frame_id: str, gt_depth: Optional[np.ndarray], gt_hvo: Optional[np.ndarray],
-            pred: Prediction) -> None:
+            pred: Prediction, attitude: Optional[Attitude] = None) -> None:
         lo, hi = self.config.min_depth_m, self.config.max_depth_m
         rec: dict = {"frame": frame_id}
         if not pred.valid:
@@ -112,7 +118,12 @@ class ModelScore:
         if self.do_hvo and gt_hvo is not None:
             assert pred.hvo_prob is not None    # do_hvo: the model's contract has an HVO head
             m = self.hvo.add(gt_hvo, hvo_labels(pred.hvo_prob))
-            rec["hvo"] = {k: m[k] for k in (*HVO_CLASSES, "average", "confusion")}
+            rec["hvo"] = {k: m[k] for k in (*HVO_CLASSES, "average", "confusion", "baseline")}
+        if self.do_landable and attitude is not None and gt_depth is not None and gt_hvo is not None:
+            # the runtime fuses calibrated depth: use the per-scene scale when there is one
+            as_run = pred if self.scale is None or pred.depth_m is None else Prediction(
+                pred.frame_id, pred.capture_time_s, pred.depth_m * np.float32(self.scale), pred.hvo_prob)
+            self.landable.add(as_run, gt_depth, gt_hvo, self.meta.intrinsics, self.meta.mount, attitude)
         self.per_frame.append(rec)
 
     def result(self) -> dict:
@@ -134,6 +145,9 @@ class ModelScore:
             }
         if self.do_hvo:
             out["hvo"] = {"frames": self.hvo.count, **self.hvo.result()}
+        out["landable"] = self.landable.result() if self.landable.frames else None
+        if out["landable"] is not None:
+            out["landable"]["depth"] = "calibrated" if self.scale is not None else "raw"
         return out
 
 
@@ -157,6 +171,7 @@ def evaluate_scene(models: Sequence[OnnxModel], scene: Scene, config: EvalConfig
     frame_ids = scene.frame_ids[: config.max_frames] if config.max_frames else scene.frame_ids
     iterator = progress(frame_ids, total=len(frame_ids), desc="edge-eval") if show_progress else frame_ids
     finite_px = in_range_px = 0
+    poses = scene.poses()
     for index, fid in enumerate(iterator):
         rgb = scene.read_rgb(fid)
         gt_depth = scene.read_depth(fid) if need_depth else None
@@ -169,9 +184,11 @@ def evaluate_scene(models: Sequence[OnnxModel], scene: Scene, config: EvalConfig
             if gt is not None and gt.shape != hw:
                 raise SceneError(f"frame {fid}: {name} ground truth is {gt.shape[0]}x{gt.shape[1]} but the rgb "
                                  f"image is {hw[0]}x{hw[1]}; expected the same size (ARCHITECTURE.md §4)")
+        pose = poses.get(fid)
+        attitude = Attitude(pose.roll_rad, pose.pitch_rad, pose.yaw_rad) if pose is not None else None
         for model, score in zip(models, scores):
             if score.do_depth or score.do_hvo:
-                score.add(fid, gt_depth, gt_hvo, model.predict(rgb, frame_id=index, out_hw=hw))
+                score.add(fid, gt_depth, gt_hvo, model.predict(rgb, frame_id=index, out_hw=hw), attitude)
     return {"scene": str(scene.path), "frames": len(frame_ids), "config": config.to_json(),
             "depth_pixels": {"finite": finite_px, "in_range": in_range_px} if need_depth else None,
             "models": [s.result() for s in scores]}

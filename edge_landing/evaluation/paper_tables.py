@@ -111,7 +111,9 @@ class PaperTables:
     def to_json(self) -> dict:
         from dataclasses import asdict
 
-        return {"dataset": self.dataset.value, "tables": list(self.table_numbers),
+        return {"dataset": self.dataset.value, "tables": list(self.table_numbers), "comparable": False,
+                "note": f"the paper's published figures on {self.dataset.value}, another dataset (other images, "
+                        f"labels and base rates): for reference only, not comparable with this scene's rows",
                 "depth": [asdict(r) for r in self.depth], "ssim": [asdict(r) for r in self.ssim],
                 "hvo": [asdict(r) for r in self.hvo]}
 
