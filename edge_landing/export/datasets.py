@@ -112,6 +112,19 @@ def load_scene(path: os.PathLike | str, height: int, width: int, need_depth: boo
     return SceneSet(rgb, depth, hvo, [info])
 
 
+# World styles kept out of training and model selection: our zero-shot test, as the paper keeps AirSimNC out.
+HELD_OUT_STYLES = ("rural",)
+
+
+def check_not_held_out(paths: Sequence[os.PathLike | str]) -> None:
+    """Refuse scenes whose scene.json names a held-out style (edge-sim --style rural)."""
+    for p in paths:
+        style = Scene(p).meta.generator.get("style")
+        if style in HELD_OUT_STYLES:
+            raise SceneError(f"scene {p} is edge-sim style '{style}', which is held out of training and validation "
+                             f"(the zero-shot test); train on suburban/urban scenes")
+
+
 def load_scenes(paths: Sequence[os.PathLike | str], height: int, width: int, need_depth: bool, need_hvo: bool,
                 progress: bool = True) -> SceneSet:
     """Several scenes concatenated (their frames are shuffled together during training)."""

@@ -34,7 +34,7 @@ from edge_landing.runtime.perception.contract import (
 )
 
 from .augment import AugmentConfig, Augmenter
-from .datasets import SceneSet, load_scenes
+from .datasets import SceneSet, check_not_held_out, load_scenes
 from .losses import W_DEPTH, DepthLossSpace, depth_loss, hvo_loss
 from .train_record import epoch_summary, export_trained, run_record
 from .zoo import get_arch
@@ -262,6 +262,7 @@ def train(cfg: TrainConfig) -> TrainResult:
     if (out / "last.pth").exists() and not cfg.resume and not cfg.overwrite:
         raise InputError(f"--out {out} already holds a training run (last.pth); continue it with --resume "
                          f"{out / 'last.pth'}, choose a new --out, or pass --overwrite to replace it")
+    check_not_held_out([*cfg.train_scenes, *cfg.val_scenes])     # before anything is written
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -20,11 +20,19 @@ def build_parser() -> argparse.ArgumentParser:
                   extra="sim", extra_modules=("embreex", "tqdm"))   # trimesh: not imported by the generator
     p.add_argument("out", type=Path, help="scene folder to write")
     p.add_argument("--frames", type=int, default=10, help="number of frames (default 10)")
-    p.add_argument("--style", default="suburban", help="world style: suburban or urban (default suburban)")
+    p.add_argument("--style", default="suburban",
+                   help="world style: suburban, urban or rural (rural = the held-out zero-shot style, "
+                        "never for training; default suburban)")
     p.add_argument("--seed", type=int, default=0, help="world and frame seed (default 0)")
     p.add_argument("--height", type=int, default=240, help="image height in pixels (default 240)")
     p.add_argument("--width", type=int, default=320, help="image width in pixels (default 320)")
-    p.add_argument("--hfov-deg", type=float, default=90.0, help="horizontal field of view (default 90)")
+    p.add_argument("--hfov-deg", type=float, default=None,
+                   help="horizontal field of view (default 90; with --randomise drawn per scene in 60-110)")
+    p.add_argument("--randomise", action="store_true",
+                   help="domain randomisation (opt-in, so existing seeds render as before): camera pitch 20-90 deg "
+                        "down, height 10-120 m, HFOV 60-110 deg, roll/pitch jitter; per-scene material palette "
+                        "and textures; per-frame white balance, vignetting, defocus, noise, JPEG (all recorded in "
+                        "scene.json)")
     fx = p.add_argument_group("effects (random per frame unless given)")
     fx.add_argument("--sun-azimuth-deg", type=float, help="sun azimuth from north, degrees")
     fx.add_argument("--sun-elevation-deg", type=float, help="sun elevation above the horizon, 5-90 degrees")
@@ -75,8 +83,14 @@ def _overrides(args: argparse.Namespace) -> EffectOverrides:
 def config_from_args(argv: Optional[Sequence[str]]) -> tuple[SimConfig, bool]:
     """(configuration, no progress bar) from command-line arguments; bad values raise InputError."""
     args = build_parser().parse_args(argv)
+    hfov_deg = args.hfov_deg
+    if hfov_deg is None:
+        from .randomise import scene_hfov_deg
+
+        hfov_deg = scene_hfov_deg(args.seed) if args.randomise else 90.0
     return SimConfig(out=args.out, frames=args.frames, style=Style.from_string(args.style), seed=args.seed,
-                     width=args.width, height=args.height, hfov_deg=args.hfov_deg, effects=_overrides(args),
+                     width=args.width, height=args.height, hfov_deg=hfov_deg, effects=_overrides(args),
+                     randomise=args.randomise,
                      flight=args.flight, fps=args.fps, preview=args.preview, write_normals=not args.no_normals,
                      shadow_stride=args.shadow_stride, overwrite=args.overwrite), args.no_progress
 

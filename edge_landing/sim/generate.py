@@ -25,6 +25,7 @@ from .world import WORLD_HALF_SIZE_M, Style, build_world
 
 SIM_VERSION = "1.0.0"
 _PURPOSE_POSE, _PURPOSE_EFFECTS, _PURPOSE_SENSOR, _PURPOSE_FLIGHT = 1, 2, 3, 4
+_PURPOSE_PALETTE, _PURPOSE_LOOK = 5, 6
 SCENE_SUBFOLDERS = ("rgb", "depth", "hvo", "normals")
 
 
@@ -46,6 +47,7 @@ class SimConfig:
     write_normals: bool = True
     shadow_stride: int = 1
     overwrite: bool = False
+    randomise: bool = False      # sim/randomise.py + sim/appearance.py: camera, palette and look draws
 
     def __post_init__(self):
         if self.frames < 1:
@@ -85,7 +87,13 @@ def vehicle_samples(config: SimConfig, world) -> Iterator[VehicleSample]:
         yield from plan_flight(world, frame_rng(config.seed, 0, _PURPOSE_FLIGHT), config.frames, config.fps)
         return
     for k in range(config.frames):
-        yield random_view(world, frame_rng(config.seed, k, _PURPOSE_POSE), t_s=k / config.fps)
+        rng = frame_rng(config.seed, k, _PURPOSE_POSE)
+        if config.randomise:
+            from .randomise import randomised_view
+
+            yield randomised_view(world, rng, t_s=k / config.fps)
+        else:
+            yield random_view(world, rng, t_s=k / config.fps)
 
 
 def frame_effects(config: SimConfig, frame: int) -> Effects:
@@ -122,7 +130,18 @@ def generator_record(config: SimConfig, world, per_frame: list[dict]) -> dict:
         "effects": config.effects.to_json(), "shadow_stride": config.shadow_stride,
         "world": {"half_size_m": WORLD_HALF_SIZE_M, "triangles": int(len(world.tris)), "frame": "local NED"},
         "per_frame_effects": per_frame,
+        **({"randomise": randomise_record(config)} if config.randomise else {}),
     }
+
+
+def randomise_record(config: SimConfig) -> dict:
+    """What --randomise drew for the scene (per-frame camera looks are in per_frame_effects[k]['look'])."""
+    from .appearance import sample_palette
+    from .randomise import RANGES
+
+    return {"views": RANGES.to_json() if not config.flight else "flight plan (not randomised)",
+            "hfov_deg": float(config.hfov_deg),
+            "palette": sample_palette(frame_rng(config.seed, 0, _PURPOSE_PALETTE)).to_json()}
 
 
 def generate(config: SimConfig, progress: bool = True) -> Path:
@@ -136,6 +155,10 @@ def generate(config: SimConfig, progress: bool = True) -> Path:
     writer = SceneWriter(out, meta)            # fails fast on an unwritable folder, before the slow work
     world = build_world(config.style, config.seed)
     renderer = Renderer(world, config.intrinsics, meta.mount, thresholds, config.shadow_stride)
+    if config.randomise:
+        from .appearance import sample_palette
+
+        renderer.palette = sample_palette(frame_rng(config.seed, 0, _PURPOSE_PALETTE))
     video = _open_video(out / "flight.mp4", config) if config.flight else None
     per_frame = []
     try:
@@ -145,12 +168,18 @@ def generate(config: SimConfig, progress: bool = True) -> Path:
             fx = frame_effects(config, k)
             r = renderer.render(sample.position_ned_m, sample.attitude, fx, frame_rng(config.seed, k, _PURPOSE_SENSOR))
             g = r.geometry
-            writer.write(k, r.rgb, g.depth_m, g.hvo, g.normals if config.write_normals else None, pose_of(k, sample))
-            per_frame.append(fx.to_json())
+            rgb, record = r.rgb, fx.to_json()
+            if config.randomise:
+                from .appearance import apply_look, sample_look
+
+                look = sample_look(frame_rng(config.seed, k, _PURPOSE_LOOK))
+                rgb, record["look"] = apply_look(rgb, look, frame_rng(config.seed, k, _PURPOSE_LOOK + 100)), look.to_json()
+            writer.write(k, rgb, g.depth_m, g.hvo, g.normals if config.write_normals else None, pose_of(k, sample))
+            per_frame.append(record)
             if video is not None:
                 import cv2
 
-                video.write(cv2.cvtColor(r.rgb, cv2.COLOR_RGB2BGR))
+                video.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     finally:
         if video is not None:
             video.release()

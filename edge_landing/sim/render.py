@@ -8,6 +8,7 @@ atmosphere and sensor effects (see :mod:`sim.effects`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
@@ -23,6 +24,9 @@ from edge_landing.runtime.core.geometry import HvoThresholds, hvo_from_normals
 from .effects import Effects, apply_atmosphere, apply_sensor, sky_colour, sun_colour
 from .textures import albedo
 from .world import MISS, Material, World
+
+if TYPE_CHECKING:
+    from .appearance import Palette
 
 SKY_MATERIAL = 255
 REFLECTANCE = np.zeros(256, np.float32)
@@ -57,6 +61,7 @@ class Renderer:
                  thresholds: HvoThresholds = HvoThresholds(), shadow_stride: int = 1):
         self.world, self.intrinsics, self.mount, self.thresholds = world, intrinsics, mount, thresholds
         self.shadow_stride = max(1, int(shadow_stride))
+        self.palette: Optional[Palette] = None     # edge-sim --randomise: the scene's material look
         rays = intrinsics.pixel_rays()
         self._rays_cam = rays.reshape(-1, 3).astype(np.float64)
         self._ray_length = np.linalg.norm(rays, axis=-1)           # range = z-depth × this
@@ -134,6 +139,8 @@ class Renderer:
             light = sun_colour(effects) * (lambert[hit] * lit[hit] * 0.95)[:, None] + ambient
             mat = g.material[hit]
             alb = albedo(self.world, mat, g.triangle[hit], g.points_ned[hit], n_hit)
+            if self.palette is not None:
+                alb = self.palette.apply(alb, mat, g.triangle[hit], g.points_ned[hit])
             rgb[hit] = alb * light + self._reflections(mat, g.dirs_ned[hit], n_hit, effects)
         dirs = g.dirs_ned[sky]
         rgb[sky] = sky_colour(dirs / np.linalg.norm(dirs, axis=1, keepdims=True), effects)

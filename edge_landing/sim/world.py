@@ -50,6 +50,7 @@ class Material(IntEnum):
 class Style(ChoiceEnum):
     SUBURBAN = "suburban"
     URBAN = "urban"
+    RURAL = "rural"     # held out of training: the zero-shot test style (sim/rural.py)
 
     @classmethod
     def _label(cls) -> str:
@@ -223,8 +224,14 @@ def build_world(style: Style | str, seed: int) -> World:
     from .towns import suburban_layout, urban_layout
 
     style = style if isinstance(style, Style) else Style.from_string(style)
-    rng = np.random.default_rng([int(seed), 0x5EED, 1 if style is Style.URBAN else 0])
-    if style is Style.SUBURBAN:
+    rng = np.random.default_rng([int(seed), 0x5EED, {Style.SUBURBAN: 0, Style.URBAN: 1}.get(style, 2)])
+    if style is Style.RURAL:
+        from .rural import rural_layout
+
+        terrain = make_terrain(rng, amplitude_m=4.0)
+        ground = GroundMap(Material.GRASS)
+        part, spots = rural_layout(rng, terrain, ground)
+    elif style is Style.SUBURBAN:
         terrain = make_terrain(rng, amplitude_m=3.0)
         ground = GroundMap(Material.GRASS)
         part, spots = suburban_layout(rng, terrain, ground)
