@@ -100,3 +100,48 @@ def test_shipped_model_floor_on_unseen_scenes_of_both_styles(name, style, unseen
     floor_precision, floor_delta1 = FLOORS[style]
     assert got["h_precision"] >= floor_precision, got
     assert got["delta1_scene_scale"] >= floor_delta1, got
+
+
+# -- the held-out style (issue 14) ------------------------------------------------------------------------
+# edge-sim's rural/industrial style is never used for training or validation (export/datasets.py refuses it):
+# our own zero-shot test. Measured when these floors were set (rural seed 103, 6 frames at 120×160, default
+# camera): (H precision, H base rate, lift, δ1 after one scene scale). The base rate is high (open fields),
+# so the lift, not the precision, says whether the net sees anything: "horizontal everywhere" has lift 0.
+HELD_OUT_SEED = 103
+HELD_OUT_MEASURED = {"edgenet.onnx": (0.924, 0.841, 0.083, 0.537), "edgenet.int8.onnx": (0.921, 0.841, 0.080, 0.505)}
+# (lift over the base rate, mIoU, δ1 after one scene scale): about half the measured lift (a net calling everything
+# horizontal gets 0), and well under the measured mIoU 0.40 and δ1 0.50-0.54. The issue's goals (lift >= 0.20,
+# δ1 >= 0.70) are not met by this model; see the README's accuracy tables.
+HELD_OUT_FLOORS = (0.04, 0.30, 0.40)
+
+
+@pytest.fixture(scope="module")
+def held_out_scene(tmp_path_factory):
+    generate = pytest.importorskip("edge_landing.sim.generate")
+    pytest.importorskip("embreex")
+    out = tmp_path_factory.mktemp("held_out") / f"rural{HELD_OUT_SEED}"
+    generate.generate(generate.SimConfig(out=out, frames=6, style=generate.Style.RURAL, seed=HELD_OUT_SEED,
+                                         width=160, height=120, write_normals=False), progress=False)
+    return Scene(out)
+
+
+@pytest.mark.skipif(not _trained(), reason="the shipped edgenet is still the random placeholder")
+@pytest.mark.parametrize("name", sorted(HELD_OUT_MEASURED))
+def test_shipped_model_floor_on_the_held_out_rural_style(name, held_out_scene):
+    path = MODELS_DIR / name
+    if not path.exists():
+        pytest.skip(f"{name} is not shipped in this installation")
+    model = OnnxModel.load(path, threads=1)
+    got = score(model, held_out_scene)
+    hvo = HvoAccumulator()
+    for fid in held_out_scene.frame_ids:
+        hvo.add(held_out_scene.read_hvo(fid), model.predict(held_out_scene.read_rgb(fid), out_hw=(120, 160))
+                .hvo_prob.argmax(axis=2))
+    base = hvo.result()["baseline"]
+    got.update(base_rate=base["horizontal_base_rate"], lift=base["horizontal_lift"], miou=base["miou"])
+    print(f"\n{name} on held-out rural seed {HELD_OUT_SEED}: H precision {got['h_precision']:.3f} vs base rate "
+          f"{got['base_rate']:.3f} (lift {got['lift']:+.3f}), mIoU {got['miou']:.3f}, "
+          f"δ1 (scene scale) {got['delta1_scene_scale']:.3f}")
+    assert got["lift"] >= HELD_OUT_FLOORS[0], got
+    assert got["miou"] >= HELD_OUT_FLOORS[1], got
+    assert got["delta1_scene_scale"] >= HELD_OUT_FLOORS[2], got

@@ -89,14 +89,15 @@ def honest_table(hvo_models: Sequence[dict[str, Any]]) -> str:
         b = m["hvo"]["baseline"]
         land = m.get("landable") or {}
         rows.append([m["name"], _fmt(b["horizontal_precision"]), _fmt(b["horizontal_base_rate"]),
-                     _fmt(b["horizontal_lift"]), _fmt(b["miou"]), _fmt(land.get("landable_precision")),
-                     _fmt(land.get("landable_base_rate")), _fmt(land.get("landable_lift")),
+                     _fmt(b["horizontal_lift"]), _fmt(b.get("horizontal_max_lift")), _fmt(b["miou"]),
+                     _fmt(land.get("landable_precision")), _fmt(land.get("landable_base_rate")), _fmt(land.get("landable_lift")),
                      _fmt(land.get("called_share"))])
     return _table("Honest figures: H precision vs its base rate (share of labelled pixels that are horizontal = the "
-                  "precision of calling everything horizontal) and the lift over it; mIoU; landable precision = share "
-                  "of pixels the runtime's fuser calls landable that the same fuser on the ground truth finds landable "
+                  "precision of calling everything horizontal) and the lift over it (max lift = a perfect net's); "
+                  "mIoU; landable precision = share of pixels the runtime's fuser calls landable that the same fuser "
+                  "on the ground truth finds landable "
                   "(– = no poses.csv/ground truth), beside its base rate",
-                  ["model", "H prec", "H base", "H lift", "mIoU", "land prec", "land base", "land lift",
+                  ["model", "H prec", "H base", "H lift", "max lift", "mIoU", "land prec", "land base", "land lift",
                    "called"], rows)
 
 

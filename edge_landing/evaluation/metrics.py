@@ -273,6 +273,7 @@ def horizontal_baseline(cm: np.ndarray) -> dict:
     ious = [_ratio(cm[i, i], cm[i, :].sum() + cm[:, i].sum() - cm[i, i]) for i in range(len(HVO_CLASSES))]
     return {"horizontal_precision": precision, "horizontal_base_rate": base,
             "horizontal_lift": precision - base if not (math.isnan(precision) or math.isnan(base)) else math.nan,
+            "horizontal_max_lift": 1.0 - base if not math.isnan(base) else math.nan,   # a perfect net's lift
             "miou": _nanmean(ious)}
 
 

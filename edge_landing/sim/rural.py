@@ -49,7 +49,7 @@ def _yard(col: Collector, ground: GroundMap, n: float, e: float, industrial: boo
     rng = col.rng
     hn, he = rng.uniform(25, 60), rng.uniform(25, 60)
     ground.rects(n - hn, e - he, n + hn, e + he, Material.CONCRETE)
-    for _ in range(rng.integers(1, 4)):                          # sheds / halls
+    for _ in range(rng.integers(2, 6)):                          # sheds / halls
         bx, by = rng.uniform(5, 18 if industrial else 10), rng.uniform(4, 12)
         cn, ce = n + rng.uniform(-hn + bx, hn - bx), e + rng.uniform(-he + by, he - by)
         height = rng.uniform(4, 10 if industrial else 6)
@@ -61,7 +61,7 @@ def _yard(col: Collector, ground: GroundMap, n: float, e: float, industrial: boo
             z = col.box(cn, ce, bx, by, 0.0, height, Material.WALL, wall)
             col.add("roof", n=cn, e=ce, hx=bx, hy=by, yaw=0.0, z=z, pitch=math.radians(rng.uniform(10, 25)),
                     tint=ROOF_TINTS[rng.integers(len(ROOF_TINTS))], wall_tint=wall, hip=False)
-    for _ in range(rng.integers(3, 16 if industrial else 6)):    # containers: 6.1 or 12.2 x 2.4 x 2.6 m
+    for _ in range(rng.integers(6, 30 if industrial else 10)):   # containers: 6.1 or 12.2 x 2.4 x 2.6 m
         length = 6.1 if rng.random() < 0.5 else 12.2
         yaw = rng.choice([0.0, math.pi / 2]) + rng.normal(0, 0.02)
         cn, ce = n + rng.uniform(-hn + 7, hn - 7), e + rng.uniform(-he + 7, he - 7)
@@ -88,10 +88,10 @@ def rural_layout(rng: np.random.Generator, terrain: Terrain, ground: GroundMap) 
     for c in ns[1:-1]:                                            # dirt tracks and hedgerows on field edges
         if rng.random() < 0.5:
             ground.rects(c - track_w / 2, -big, c + track_w / 2, big, Material.SOIL)
-        elif rng.random() < 0.6:
-            for e in np.arange(-big, big, rng.uniform(6, 14)):
-                if rng.random() < 0.7:
-                    col.tree(c + rng.uniform(-1, 1), e + rng.uniform(-2, 2), rng.uniform(1.5, 4.0))
+        if rng.random() < 0.7:                                    # hedgerow trees (only near the centre)
+            for e in np.arange(-250, 250, rng.uniform(5, 10)):
+                if abs(c) < 250 and rng.random() < 0.75:
+                    col.tree(c + track_w + rng.uniform(-1, 1), e + rng.uniform(-2, 2), rng.uniform(1.5, 4.0))
     for c in es[1:-1]:
         if rng.random() < 0.4:
             ground.rects(-big, c - track_w / 2, big, c + track_w / 2, Material.SOIL)
@@ -109,13 +109,18 @@ def rural_layout(rng: np.random.Generator, terrain: Terrain, ground: GroundMap) 
             f = math.cos(math.pi * k / 12)
             ground.rects(n - rn * f, e - re * math.sin(math.pi * (k + 6) / 12), n + rn * f,
                          e + re * math.sin(math.pi * (k + 6) / 12), Material.WATER)
-    for _ in range(rng.integers(2, 5)):                            # small woods
+    for _ in range(rng.integers(5, 10)):                           # small woods
         n, e, r = rng.uniform(-220, 220), rng.uniform(-220, 220), rng.uniform(15, 40)
         for _ in range(int(r * rng.uniform(0.8, 1.5))):
             a, d = rng.uniform(0, 2 * math.pi), r * math.sqrt(rng.random())
             col.tree(n + d * math.cos(a), e + d * math.sin(a), rng.uniform(2.5, 5.0))
-    for i in range(rng.integers(4, 9)):                            # farmyards and industrial yards
-        n, e = rng.uniform(-180, 180, 2)
+    for _ in range(rng.integers(3, 7)):                            # orchards: trees in rows
+        n, e = rng.uniform(-200, 200, 2)
+        for dn in np.arange(-30, 30, rng.uniform(5, 8)):
+            for de in np.arange(-40, 40, rng.uniform(4, 6)):
+                col.tree(n + dn, e + de, rng.uniform(1.2, 2.2), scale=0.6)
+    for i in range(rng.integers(10, 18)):                          # farmyards and industrial yards
+        n, e = rng.uniform(-200, 200, 2)
         _yard(col, ground, n, e, industrial=i % 2 == 0)
     for _ in range(rng.integers(4, 12)):                           # traffic on the road
         col.car(road + rng.choice([-1.7, 1.7]), rng.uniform(-200, 200), rng.choice([math.pi / 2, -math.pi / 2]))
