@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Optional, Sequence, cast
 
 import numpy as np
 import torch
@@ -62,7 +62,8 @@ def import_onnx(path: Path, frames: torch.Tensor) -> nn.Module:
     fused = _onnx_convs(path)
     if len(convs) != len(fused):
         raise InputError(f"{path}: {len(fused)} Conv nodes but EdgeNet has {len(convs)} convolutions")
-    bn_after = {id(m[0]): m[1] for m in model.modules() if isinstance(m, edgenet.ConvBNReLU)}
+    bn_after: dict[int, nn.BatchNorm2d] = {id(m[0]): cast(nn.BatchNorm2d, m[1]) for m in model.modules()
+                                           if isinstance(m, edgenet.ConvBNReLU)}
     biases: dict[int, torch.Tensor] = {}
     with torch.no_grad():
         for conv, (w, b) in zip(convs, fused):
@@ -77,6 +78,7 @@ def import_onnx(path: Path, frames: torch.Tensor) -> nn.Module:
                 continue
             bn.weight.fill_(1.0)
             bn.bias.copy_(bias)
+            assert bn.running_mean is not None and bn.running_var is not None   # EdgeNet tracks statistics
             bn.running_mean.zero_()
             bn.running_var.fill_(1.0 - bn.eps)
             biases[id(bn)] = bias
@@ -90,6 +92,7 @@ def import_onnx(path: Path, frames: torch.Tensor) -> nn.Module:
             h.remove()
         for bn in bn_after.values():
             mu, var = stats[id(bn)]
+            assert bn.running_mean is not None and bn.running_var is not None
             bn.running_mean.copy_(mu)
             bn.running_var.copy_(var)
             bn.weight.copy_(torch.sqrt(var + bn.eps))
