@@ -70,7 +70,7 @@ def import_onnx(path: Path, frames: torch.Tensor) -> nn.Module:
             if tuple(conv.weight.shape) != w.shape:
                 raise InputError(f"{path}: conv shape {w.shape} where EdgeNet has {tuple(conv.weight.shape)}")
             conv.weight.copy_(torch.from_numpy(np.array(w)))       # a writable copy
-            bias = torch.from_numpy(b) if b is not None else torch.zeros(w.shape[0])
+            bias = torch.from_numpy(np.array(b)) if b is not None else torch.zeros(w.shape[0])
             bn = bn_after.get(id(conv))
             if bn is None:
                 assert conv.bias is not None
