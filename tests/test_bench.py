@@ -67,6 +67,10 @@ def test_quick_bench_writes_a_report_with_the_schema(tmp_path, capsys):
     report = json.loads((out / "report.json").read_text())
     assert report["schema"] == rep.SCHEMA_VERSION and report["settings"]["threads"] == 2
     assert report["peak"]["gflops"] > 0
+    from edge_landing.runtime.core.cpu_features import cpu_features
+
+    isa = cpu_features()      # the report names the CPU's ISA features, in the JSON and above the table
+    assert report["machine"]["isa"]["features"] == list(isa.features) and f"CPU: {isa.summary()}" in stdout
     (row,) = report["rows"]
     assert set(rep.ROW_KEYS) <= set(row)
     assert {"ort-fp32", "ort-int8", "torch"} <= set(row["timings"])

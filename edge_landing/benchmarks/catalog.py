@@ -136,7 +136,8 @@ def prepare(model: BenchModel, config: PrepareConfig) -> Prepared:
             config.cache_dir / f"calib_{h}x{w}", h, w, config.calib_frames + config.eval_frames)
         # force: a speed report keeps every model; the agreement is measured and reported either way.
         quantize(fp32, int8, QuantizeConfig(calib_scene=scene, calib_frames=config.calib_frames,
-                                            eval_frames=config.eval_frames, force=True, progress=config.progress))
+                                            eval_frames=config.eval_frames, force=True, progress=config.progress,
+                                            speed_gate=False))   # edge-bench times them itself
     contract = read_contract(fp32)
     q = read_contract(int8).quantization or {}
     comparison = q.get("comparison", {})

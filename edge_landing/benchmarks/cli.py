@@ -111,20 +111,15 @@ def parse_config(argv: Optional[Sequence[str]]) -> BenchConfig:
 
 
 def machine_info() -> dict:
-    flags, model = set(), platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name") and model in ("", "x86_64"):
-                model = line.split(":", 1)[1].strip()
-            if line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-    except OSError:
-        pass
     import onnxruntime
 
-    return {"cpu": model, "logical_cpus": os.cpu_count(), "avx2": "avx2" in flags,
-            "avx512_vnni": "avx512_vnni" in flags or "avx_vnni" in flags, "onnxruntime": onnxruntime.__version__,
-            "load_average_start": list(os.getloadavg())}
+    from edge_landing.runtime.core.cpu_features import cpu_features
+
+    isa = cpu_features()
+    return {"cpu": isa.model, "logical_cpus": os.cpu_count(), "isa": isa.to_json(), "isa_summary": isa.summary(),
+            "avx2": isa.has("AVX2"), "avx512_vnni": isa.has("AVX512_VNNI") or isa.has("AVX_VNNI"),
+            "int8_dot_product": isa.int8_dot_product, "machine": platform.machine(),
+            "onnxruntime": onnxruntime.__version__, "load_average_start": list(os.getloadavg())}
 
 
 def bench_model(prepared, config: BenchConfig, peak_gflops: float) -> rep.BenchRow:
@@ -200,8 +195,11 @@ def run(config: BenchConfig) -> dict:
              f"round-robin); load average {info['load_average_start'][0]:.2f} -> {info['load_average_end'][0]:.2f}",
              "ORT sessions run with idle-thread spinning off so that the round-robin backends do not steal cores "
              "from each other"]
-    if info["avx512_vnni"]:
-        notes.append("this CPU has VNNI, the drone's may not: INT8 gains here can exceed the drone's")
+    if info["int8_dot_product"]:
+        notes.append("this CPU has an int8 dot-product instruction (VNNI/AMX/ARM dot-product), the drone's may not: "
+                     "INT8 gains here can exceed the drone's")
+    else:
+        notes.append("this CPU has no int8 dot-product instruction: ONNX Runtime's INT8 kernels widen to int16 here")
     report = {"schema": rep.SCHEMA_VERSION, "created_unix_s": time.time(), "machine": info,
             "peak": {**peak.to_json(), "gflops": best, "before": peak_before.to_json(), "after": peak_after.to_json()},
             "settings": {"threads": config.threads, "scaling": config.scaling, "warmup": config.speed.warmup,

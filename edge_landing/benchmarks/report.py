@@ -82,7 +82,10 @@ def to_markdown(report: dict) -> str:
     head = ["model", "input", "params (M)", "FP32 MB", "INT8 MB", "GMAC"]
     head += [f"{KIND_LABEL[k]} img/s (p50/p90/p99 ms)" for k in kinds]
     head += ["INT8/FP32", "INT8/torch", "FP32 GFLOP/s (% peak)", "INT8 agrees", "paper V100 img/s", "paper MB"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    machine = report.get("machine", {})
+    lines = [f"CPU: {machine.get('isa_summary', machine.get('cpu', 'unknown'))}; {machine.get('logical_cpus', '?')} "
+             f"logical CPU(s); ONNX Runtime {machine.get('onnxruntime', '?')}", ""]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [r.model, f"{r.input_hw[0]}×{r.input_hw[1]}", _f(r.params_m), _f(r.onnx_fp32_mb, 1),
                  _f(r.onnx_int8_mb, 1), _f(r.gmac, 1)]

@@ -24,6 +24,7 @@ import numpy as np
 
 from edge_landing.evaluation.scene import Scene
 from edge_landing.runtime.core.choices import ChoiceEnum
+from edge_landing.runtime.core.cpu_features import cpu_features
 from edge_landing.runtime.core.errors import InputError, SceneError
 from edge_landing.runtime.perception.inference import OnnxModel
 
@@ -78,6 +79,10 @@ class QuantizeConfig:
     force: bool = False                  # write the INT8 file even when it fails the tolerance
     threads: int = 2
     progress: bool = True
+    # Time INT8 against FP32 on this machine (interleaved, after warm-up) and record it with the CPU's
+    # features: INT8 that passes the accuracy gate can still be slower than FP32 on a CPU without VNNI.
+    speed_gate: bool = True
+    speed_iterations: int = 30
 
     @property
     def calib_scenes(self) -> Tuple[Path, ...]:
@@ -251,7 +256,19 @@ def _settings(config: QuantizeConfig, calib: List[FrameRef], excluded: List[str]
             "excluded_nodes": excluded, "float_op_types": list(float_ops),
             "calibration": {"scenes": [str(p) for p in config.calib_scenes], "frames": len(calib),
                             "first": frame_label(calib[0]), "last": frame_label(calib[-1])},
-            "fp32_sha256": fp32.sha256, "onnxruntime": onnxruntime.__version__, "tolerance": asdict(config.tolerance)}
+            "fp32_sha256": fp32.sha256, "onnxruntime": onnxruntime.__version__, "tolerance": asdict(config.tolerance),
+            "tuned_on_cpu": cpu_features().to_json()}
+
+
+def speed_check(fp32_path: Path, int8_path: Path, config: QuantizeConfig) -> dict:
+    """INT8 against FP32 on this CPU: p50 latency of each, timed interleaved (the edge-run probe's method with
+    more rounds), at ``config.threads``."""
+    from edge_landing.runtime.perception.precision import ProbeConfig, probe
+
+    fp32_s, int8_s = probe(fp32_path, int8_path, ProbeConfig(threads=config.threads, warmup=5,
+                                                             iterations=config.speed_iterations, max_seconds=60.0))
+    return {"threads": config.threads, "fp32_p50_ms": fp32_s * 1e3, "int8_p50_ms": int8_s * 1e3,
+            "int8_vs_fp32": fp32_s / int8_s, "faster_here": int8_s < fp32_s, "cpu": cpu_features().summary()}
 
 
 class _QuantizerLogFilter(logging.Filter):
@@ -359,6 +376,8 @@ def quantize(input: os.PathLike | str, output: os.PathLike | str, config: Quanti
         reasons = check_tolerance(comparison, config.tolerance)
         passed = not reasons
         settings = {**settings, "comparison": comparison, "passed": passed, "forced": bool(reasons) and config.force}
+        if config.speed_gate:
+            settings["speed"] = speed_check(src, out_tmp, config)
         _write_metadata(out_tmp, fp32, settings)
         report = QuantReport(src, dst, written=False, passed=passed, reasons=reasons, settings=settings,
                              comparison=comparison, size_fp32_mb=src.stat().st_size / 1e6,

@@ -5,6 +5,8 @@
     edge-quantize model.onnx --calib suburban/ urban/ --frames 16 --out model.int8.onnx   # 8 + 8 frames
 
 Exits non-zero with one line when INT8 loses more than the tolerance (the INT8 file is then not written).
+Then INT8 is timed against FP32 on this CPU (interleaved, --threads) and the result is recorded in the
+file with the CPU's ISA features: edge-run --precision auto uses INT8 only where it is faster.
 Memory: ONNX Runtime's calibrator keeps every activation of every calibration frame (DenseDepth at 480x640:
 4.6 GB peak with --frames 4), so use few frames for the big networks.
 """
@@ -61,6 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-subpixel", action="store_true",
                    help="keep ConvTranspose as it is (default: rewrite it as Conv + DepthToSpace so it quantizes)")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--no-speed-gate", action="store_true",
+                   help="do not time INT8 against FP32 on this CPU (default: timed, recorded with the CPU's features)")
     p.add_argument("--max-delta1-drop", type=float, default=t.max_delta1_drop)
     p.add_argument("--max-absrel-increase", type=float, default=t.max_abs_rel_increase)
     p.add_argument("--min-depth-agreement", type=float, default=t.min_depth_agreement)
@@ -96,6 +100,13 @@ def format_report(report: QuantReport) -> str:
                  f"{report.settings.get('subpixel_conv_transposes', 0)} ConvTranspose(s) rewritten as Conv, "
                  f"reduce_range={report.settings['reduce_range']}; kept float: {len(excluded)} named node(s) and "
                  f"op type(s) {', '.join(report.settings['float_op_types']) or 'none'}")
+    speed = report.settings.get("speed")
+    if speed:
+        verdict = ("faster" if speed["faster_here"] else
+                   "NOT faster: edge-run --precision auto keeps FP32 on this CPU")
+        lines.append(f"  speed on this CPU ({speed['cpu']}), {speed['threads']} thread(s), p50: INT8 "
+                     f"{speed['int8_p50_ms']:.2f} ms vs FP32 {speed['fp32_p50_ms']:.2f} ms = "
+                     f"{speed['int8_vs_fp32']:.2f}x, {verdict}")
     if "hvo" in c and _fmt(c["hvo"]["fp32"]["horizontal_precision"]) == "nan":
         lines.append("  note: horizontal precision is nan because the FP32 model predicts no horizontal pixel on "
                      "these frames (random or untrained weights?)")
@@ -115,7 +126,7 @@ def main_body(argv: Sequence[str] | None = None) -> int:
                             exclude_nodes=tuple(args.exclude_node),
                             float_op_types=tuple(args.float_op_type) if args.float_op_type is not None else None,
                             subpixel=not args.no_subpixel, tolerance=tol, force=args.force,
-                            threads=args.threads, progress=not args.no_progress)
+                            threads=args.threads, progress=not args.no_progress, speed_gate=not args.no_speed_gate)
     report = quantize(args.model, args.out, config)
     print(format_report(report))
     if not report.passed and not report.written:
