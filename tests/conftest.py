@@ -21,3 +21,9 @@ def densedepth(one_torch_thread):
 
     torch.manual_seed(0)
     return get_arch("densedepth").build(Task.DEPTH).eval()
+
+
+@pytest.fixture(autouse=True)
+def _probe_cache_in_tmp(tmp_path_factory, monkeypatch):
+    """edge-run caches its FP32/INT8 speed probe under ~/.cache; tests keep it in a temporary folder."""
+    monkeypatch.setenv("EDGE_LANDING_CACHE", str(tmp_path_factory.getbasetemp() / "edge-landing-cache"))

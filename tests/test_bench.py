@@ -1,5 +1,6 @@
 import csv
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -67,9 +68,17 @@ def test_quick_bench_writes_a_report_with_the_schema(tmp_path, capsys):
     report = json.loads((out / "report.json").read_text())
     assert report["schema"] == rep.SCHEMA_VERSION and report["settings"]["threads"] == 2
     assert report["peak"]["gflops"] > 0
+    from edge_landing.runtime.core.cpu_features import cpu_features
+
+    isa = cpu_features()      # the report names the CPU's ISA features, in the JSON and above the table
+    assert report["machine"]["isa"]["features"] == list(isa.features) and f"CPU: {isa.summary()}" in stdout
     (row,) = report["rows"]
     assert set(rep.ROW_KEYS) <= set(row)
     assert {"ort-fp32", "ort-int8", "torch"} <= set(row["timings"])
+    import importlib.util
+
+    if importlib.util.find_spec("openvino") is not None:     # the peer runtime on the same two files
+        assert {"openvino", "openvino-int8"} <= set(row["timings"]) and "OpenVINO INT8 img/s" in stdout
     for t in row["timings"].values():
         assert {"images_per_s", "p50_ms", "p90_ms", "p99_ms", "iterations", "threads"} <= set(t)
         assert t["iterations"] == 2 and t["threads"] == 2
@@ -133,3 +142,23 @@ def test_goal_checks_say_met_or_missed_by_how_much():
     assert checks[("safeuav-small", "ORT INT8 / PyTorch eager")].met
     assert checks[("edgenet", "ORT INT8 images/s / SafeUAV-Net-Small INT8")].value == pytest.approx(207 / 47.6)
     assert ("edgenet", "ORT FP32 share of the matmul peak") not in checks   # not a conv-heavy published model
+
+
+def test_depth_anything_v2_small_peer_has_the_published_size(one_torch_thread):
+    """The speed peer: Depth Anything V2 Small's architecture (24.8 M parameters), random weights."""
+    pytest.importorskip("transformers")
+    import torch
+
+    from edge_landing.benchmarks.catalog import CATALOG, PEERS, PrepareConfig, input_hw
+    from edge_landing.export.zoo import get_arch
+    from edge_landing.runtime.perception.contract import Task
+
+    spec = get_arch("depth-anything-v2-small")
+    net = spec.build(Task.DEPTH)
+    assert sum(p.numel() for p in net.parameters()) == 24_785_089
+    with torch.inference_mode():
+        (depth,) = net(torch.zeros(1, 3, 60, 80))
+    assert depth.shape == (1, 1, 60, 80)              # resized back from 4x5 patches of 14 pixels
+    cfg = PrepareConfig(cache_dir=Path("unused"))
+    assert [input_hw(CATALOG[n], cfg) for n in PEERS] == [(518, 518), (240, 320)]
+    assert all("random weights" in CATALOG[n].peer_note for n in PEERS)

@@ -162,3 +162,34 @@ def test_joint_net_keeps_its_whole_depth_branch_float_and_nothing_shared():
                               [helper.make_tensor("w", TensorProto.FLOAT, [1, 1, 1, 1], [1.0])])
     model = helper.make_model(graph)
     assert sorted(depth_head_nodes(model, "depth")) == ["depth_conv3x3", "depth_out_conv", "depth_relu", "exp"]
+
+
+def test_speed_gate_records_the_cpu_and_the_search_times_each_branch(models, tmp_path):
+    """Speed gate: INT8 timed against FP32 here, with the CPU's features; the branch search (forced on with
+    ``always``) re-quantizes with each top-level branch in float, and what it keeps float is in the record."""
+    from edge_landing.export.quant_speed import SpeedSearch, branch_groups
+    from edge_landing.export.quantize import QuantizeConfig, quantize
+    from edge_landing.runtime.core.cpu_features import cpu_features
+
+    model = onnx.load(str(models["both"]))
+    for node in model.graph.node:    # exporter-style names: /branch/.../op
+        if node.name in ("conv1", "relu1", "conv2", "relu2"):
+            node.name = f"/{'a' if node.name.endswith('1') else 'b'}/{node.name}"
+    src = tmp_path / "named.onnx"
+    onnx.save(model, str(src))
+    assert branch_groups(model, ["/b/relu2"]) == {"a": ["/a/conv1", "/a/relu1"], "b": ["/b/conv2"]}
+    report = quantize(src, tmp_path / "named.int8.onnx", QuantizeConfig(
+        calib_scene=models["good"], calib_frames=6, eval_frames=4, progress=False, speed_search=SpeedSearch.ALWAYS))
+    assert report.passed and report.written
+    q = OnnxModel.load(tmp_path / "named.int8.onnx").contract.quantization
+    assert q["tuned_on_cpu"]["features"] == list(cpu_features().features)
+    speed = q["speed"]
+    assert speed["fp32_p50_ms"] > 0 and speed["int8_p50_ms"] > 0 and speed["threads"] == 2
+    assert speed["faster_here"] == (speed["int8_p50_ms"] < speed["fp32_p50_ms"])
+    search = q["speed_search"]
+    assert search["ran"] and [s["branch"] for s in search["steps"]] == ["a", "b"]
+    for step in search["steps"]:
+        assert step["int8_p50_ms"] > 0 and step["with_branch_float_p50_ms"] > 0
+        assert step["kept_float"] == (step["branch"] in search["kept_float"])
+    for branch in search["kept_float"]:
+        assert any(n.startswith(f"/{branch}/") for n in q["excluded_nodes"])

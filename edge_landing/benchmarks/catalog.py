@@ -34,8 +34,12 @@ class BenchModel:
     paper_v100_images_per_s: Optional[float] = None
     paper_rows: str = ""
     paper_size_mb: Optional[float] = None      # Table 1's "model size": the authors' files, not ONNX
+    input_hw: Optional[Tuple[int, int]] = None  # default: the architecture's own input size
+    peer_note: str = ""                        # printed under the table (e.g. what a peer row is)
 
 
+_DA_NOTE = ("speed only, random weights: the Depth Anything V2 Small architecture from its published configuration "
+            "(transformers' DepthAnythingForDepthEstimation), not the trained model")
 CATALOG = {m.name: m for m in (
     BenchModel("adabins-80", "adabins", Task.DEPTH, (("bins", 80),), 9.623, "AdaBins-80", 917),
     BenchModel("adabins-256", "adabins", Task.DEPTH, (("bins", 256),), 9.583, "AdaBins-256", 918),
@@ -43,7 +47,14 @@ CATALOG = {m.name: m for m in (
     BenchModel("safeuav-large", "safeuav-large", Task.HVO, (), 27.853, "SafeUAV-Net-Large", 650),
     BenchModel("safeuav-small", "safeuav-small", Task.HVO, (), 101.366, "SafeUAV-Net-Small", 24),
     BenchModel("edgenet", "edgenet", Task.DEPTH_HVO, (), None, "this project's joint depth+HVO net"),
+    # What a user would pick for depth today: Depth Anything V2 Small, at its usual input and at ours.
+    BenchModel("depth-anything-v2-small", "depth-anything-v2-small", Task.DEPTH, (), None, "",
+               peer_note=_DA_NOTE),
+    BenchModel("depth-anything-v2-small-240", "depth-anything-v2-small", Task.DEPTH, (), None, "",
+               input_hw=(240, 320), peer_note=_DA_NOTE + "; at 240x320 it sees 17x22 patches (238x308 px)"),
 )}
+# The peers are left out of the default set (they need transformers, and DA at 518x518 takes ~0.5 s a frame).
+PEERS = ("depth-anything-v2-small", "depth-anything-v2-small-240")
 # AdaBins (78 M parameters, ~0.3 GB of ONNX per variant, seconds per image on 2 cores) is left out of the
 # default set to keep a default run reasonable; ask for it with --models adabins-80,adabins-256.
 DEFAULT_MODELS = ("densedepth", "safeuav-large", "safeuav-small", "edgenet")
@@ -89,7 +100,8 @@ def input_hw(model: BenchModel, config: PrepareConfig) -> Tuple[int, int]:
     from edge_landing.export.zoo import get_arch
 
     spec = get_arch(model.arch)
-    return (config.height or spec.input_hw[0], config.width or spec.input_hw[1])
+    own = model.input_hw or spec.input_hw
+    return (config.height or own[0], config.width or own[1])
 
 
 def synthetic_calibration_scene(path: Path, height: int, width: int, frames: int, seed: int = 0) -> Path:
@@ -136,7 +148,8 @@ def prepare(model: BenchModel, config: PrepareConfig) -> Prepared:
             config.cache_dir / f"calib_{h}x{w}", h, w, config.calib_frames + config.eval_frames)
         # force: a speed report keeps every model; the agreement is measured and reported either way.
         quantize(fp32, int8, QuantizeConfig(calib_scene=scene, calib_frames=config.calib_frames,
-                                            eval_frames=config.eval_frames, force=True, progress=config.progress))
+                                            eval_frames=config.eval_frames, force=True, progress=config.progress,
+                                            speed_gate=False))   # edge-bench times them itself
     contract = read_contract(fp32)
     q = read_contract(int8).quantization or {}
     comparison = q.get("comparison", {})

@@ -6,10 +6,10 @@
     edge-bench --scaling                         # 1 vs 2 threads, all interleaved in one run
 
 For each model: parameters, ONNX size FP32/INT8, and for ONNX Runtime FP32, ONNX Runtime INT8, PyTorch eager
-(and OpenVINO when installed) images/s and p50/p90/p99 latency after warm-up, all backends timed
-round-robin in one run; achieved GFLOP/s (MACs counted from the ONNX graph) against the FP32 matmul peak
-probed in the same run; the paper's V100 images/s beside. Markdown on stdout, report.json, report.csv and
-report.png under --out.
+(and OpenVINO FP32 and INT8 on the same two ONNX files when openvino is installed) images/s and p50/p90/p99
+latency after warm-up, all backends timed round-robin in one run; the CPU's ISA features above the table;
+achieved GFLOP/s (MACs counted from the ONNX graph) against the FP32 matmul peak probed in the same run; the
+paper's V100 images/s beside. Markdown on stdout, report.json, report.csv and report.png under --out.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from edge_landing.evaluation.scene import Scene
 from edge_landing.runtime.core.errors import InputError
 
 from . import report as rep
-from .catalog import DEFAULT_MODELS, QUICK_MODELS, PrepareConfig, lookup, prepare
+from .catalog import DEFAULT_MODELS, PEERS, QUICK_MODELS, PrepareConfig, lookup, prepare
 from .goals import check_goals
 from .speed import SpeedConfig
 
@@ -53,7 +53,8 @@ def build_parser() -> argparse.ArgumentParser:
                   formatter_class=argparse.RawDescriptionHelpFormatter,
                   epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--models", help=f"comma-separated (default {','.join(DEFAULT_MODELS)}; "
-                                    f"also adabins-80, adabins-256: 78 M parameters, slow)")
+                                    f"also adabins-80, adabins-256: 78 M parameters, slow; and the peers "
+                                    f"{', '.join(PEERS)}: Depth Anything V2 Small, random weights, needs transformers)")
     p.add_argument("--threads", type=int, default=2, help="threads per backend (the drone has 2 cores)")
     p.add_argument("--quick", action="store_true", help="few iterations, one small model by default")
     p.add_argument("--scaling", action="store_true", help="also time 1 thread and report the speed-up")
@@ -111,20 +112,15 @@ def parse_config(argv: Optional[Sequence[str]]) -> BenchConfig:
 
 
 def machine_info() -> dict:
-    flags, model = set(), platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name") and model in ("", "x86_64"):
-                model = line.split(":", 1)[1].strip()
-            if line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-    except OSError:
-        pass
     import onnxruntime
 
-    return {"cpu": model, "logical_cpus": os.cpu_count(), "avx2": "avx2" in flags,
-            "avx512_vnni": "avx512_vnni" in flags or "avx_vnni" in flags, "onnxruntime": onnxruntime.__version__,
-            "load_average_start": list(os.getloadavg())}
+    from edge_landing.runtime.core.cpu_features import cpu_features
+
+    isa = cpu_features()
+    return {"cpu": isa.model, "logical_cpus": os.cpu_count(), "isa": isa.to_json(), "isa_summary": isa.summary(),
+            "avx2": isa.has("AVX2"), "avx512_vnni": isa.has("AVX512_VNNI") or isa.has("AVX_VNNI"),
+            "int8_dot_product": isa.int8_dot_product, "machine": platform.machine(),
+            "onnxruntime": onnxruntime.__version__, "load_average_start": list(os.getloadavg())}
 
 
 def bench_model(prepared, config: BenchConfig, peak_gflops: float) -> rep.BenchRow:
@@ -146,8 +142,9 @@ def bench_model(prepared, config: BenchConfig, peak_gflops: float) -> rep.BenchR
         backends.append(ort_backend(prepared.int8_path, c, t, "ort-int8"))
         if config.torch:
             backends.append(torch_backend(prepared.module, c, t))
-        if openvino_available():
+        if openvino_available():   # the same two ONNX files on OpenVINO's CPU runtime
             backends.append(openvino_backend(prepared.fp32_path, c, t))
+            backends.append(openvino_backend(prepared.int8_path, c, t, kind="openvino-int8"))
     backends.append(matmul_backend(config.threads))
     timings = interleaved(backends, config.speed, desc=f"timing {m.name}")
     probe = timings.pop(f"matmul-peak@{config.threads}")
@@ -160,6 +157,8 @@ def bench_model(prepared, config: BenchConfig, peak_gflops: float) -> rep.BenchR
             scaling[kind] = {**ips, "speedup": ips[str(counts[-1])] / ips[str(counts[0])]}
     macs = count_macs(prepared.fp32_path)
     notes = ["random weights (speed only)"] if prepared.contract.source.get("weights") == "random" else []
+    if m.peer_note:
+        notes.append(m.peer_note)
     if macs.uncounted:
         notes.append(f"{len(macs.uncounted)} compute node(s) without inferred shapes left out of the MAC count")
     row = rep.BenchRow(model=m.name, arch=m.arch, task=m.task.value, input_hw=[c.input.height, c.input.width],
@@ -200,8 +199,11 @@ def run(config: BenchConfig) -> dict:
              f"round-robin); load average {info['load_average_start'][0]:.2f} -> {info['load_average_end'][0]:.2f}",
              "ORT sessions run with idle-thread spinning off so that the round-robin backends do not steal cores "
              "from each other"]
-    if info["avx512_vnni"]:
-        notes.append("this CPU has VNNI, the drone's may not: INT8 gains here can exceed the drone's")
+    if info["int8_dot_product"]:
+        notes.append("this CPU has an int8 dot-product instruction (VNNI/AMX/ARM dot-product), the drone's may not: "
+                     "INT8 gains here can exceed the drone's")
+    else:
+        notes.append("this CPU has no int8 dot-product instruction: ONNX Runtime's INT8 kernels widen to int16 here")
     report = {"schema": rep.SCHEMA_VERSION, "created_unix_s": time.time(), "machine": info,
             "peak": {**peak.to_json(), "gflops": best, "before": peak_before.to_json(), "after": peak_after.to_json()},
             "settings": {"threads": config.threads, "scaling": config.scaling, "warmup": config.speed.warmup,

@@ -1,7 +1,7 @@
 """Table 1-style speed report: rows in, markdown / JSON / CSV / PNG out.
 
 One :class:`BenchRow` per model; its ``timings`` map a backend kind (``ort-fp32``, ``ort-int8``, ``torch``,
-``openvino``) to the JSON of a :class:`benchmarks.speed.Timing`. The report JSON is::
+``openvino``, ``openvino-int8``) to the JSON of a :class:`benchmarks.speed.Timing`. The report JSON is::
 
     {"schema": 1, "machine": {...}, "peak": {...}, "settings": {...}, "notes": [...], "rows": [BenchRow, ...]}
 """
@@ -15,8 +15,9 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 SCHEMA_VERSION = 1
-KIND_ORDER = ("ort-fp32", "ort-int8", "torch", "openvino")
-KIND_LABEL = {"ort-fp32": "ORT FP32", "ort-int8": "ORT INT8", "torch": "PyTorch eager", "openvino": "OpenVINO"}
+KIND_ORDER = ("ort-fp32", "ort-int8", "torch", "openvino", "openvino-int8")
+KIND_LABEL = {"ort-fp32": "ORT FP32", "ort-int8": "ORT INT8", "torch": "PyTorch eager", "openvino": "OpenVINO FP32",
+              "openvino-int8": "OpenVINO INT8"}
 ROW_KEYS = ("model", "arch", "task", "input_hw", "threads", "params_m", "onnx_fp32_mb", "onnx_int8_mb", "gmac",
             "paper_v100_images_per_s", "timings", "int8_vs_fp32", "int8_vs_torch", "fp32_gflops",
             "fp32_share_of_peak", "int8_agreement", "scaling", "notes", "peak_gflops_same_run")
@@ -82,7 +83,10 @@ def to_markdown(report: dict) -> str:
     head = ["model", "input", "params (M)", "FP32 MB", "INT8 MB", "GMAC"]
     head += [f"{KIND_LABEL[k]} img/s (p50/p90/p99 ms)" for k in kinds]
     head += ["INT8/FP32", "INT8/torch", "FP32 GFLOP/s (% peak)", "INT8 agrees", "paper V100 img/s", "paper MB"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    machine = report.get("machine", {})
+    lines = [f"CPU: {machine.get('isa_summary', machine.get('cpu', 'unknown'))}; {machine.get('logical_cpus', '?')} "
+             f"logical CPU(s); ONNX Runtime {machine.get('onnxruntime', '?')}", ""]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [r.model, f"{r.input_hw[0]}×{r.input_hw[1]}", _f(r.params_m), _f(r.onnx_fp32_mb, 1),
                  _f(r.onnx_int8_mb, 1), _f(r.gmac, 1)]

@@ -2,7 +2,7 @@
 
     edge-run                                        # the built-in synthetic flight, shipped model, prints targets
     edge-run --camera /dev/video0 --mav udpout:127.0.0.1:14550 --autopilot ardupilot
-    edge-run --camera flight.mp4 --model edgenet.int8.onnx --record overlay.mp4 --log targets.jsonl
+    edge-run --camera flight.mp4 --model edgenet.onnx --precision fp32 --record overlay.mp4 --log targets.jsonl
 
 Ctrl-C stops cleanly: the summary is printed and every file is flushed.
 """
@@ -29,6 +29,7 @@ from edge_landing.runtime.core.messages import Frame
 from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink
 from edge_landing.runtime.io.sources import Grabber, SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
+from edge_landing.runtime.perception.precision import ModelChoice, Precision, ProbeConfig, pick_model
 from edge_landing.runtime.pipeline import (
     ContinuityConfig,
     FrameCheck,
@@ -65,7 +66,7 @@ class RunConfig:
     model: Optional[str] = None
     depth_model: Optional[str] = None
     hvo_model: Optional[str] = None
-    int8: bool = False
+    precision: Precision = Precision.AUTO   # auto: the faster of FP32 and its INT8 twin on this CPU
     calibration: Optional[str] = None
     altitude_scale: bool = True
     mav: Optional[str] = None
@@ -113,8 +114,6 @@ class RunConfig:
         if self.fps < 0 or self.camera_width < 0 or self.camera_height < 0:
             raise InputError(f"--fps, --camera-width and --camera-height must be >= 0 (0 = the camera's default), "
                              f"got {self.fps}, {self.camera_width}, {self.camera_height}")
-        if self.int8 and (self.model or self.depth_model):
-            raise InputError("--int8 selects the shipped INT8 model; with --model/--depth-model give the INT8 file itself")
         if self.poses and (self.camera == "sim" or self.camera.startswith("sim:")):
             raise InputError("--poses replays a recorded flight's telemetry; the sim camera has its own")
 
@@ -136,7 +135,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "(negative = below the horizon)")
     m = p.add_argument_group("model")
     m.add_argument("--model", help="joint depth+HVO ONNX model (default: the shipped edgenet)")
-    m.add_argument("--int8", action="store_true", help="use the shipped INT8 model")
+    m.add_argument("--precision", default="auto", help="auto (default): the faster on this CPU of the FP32 file and "
+                   "its INT8 twin X.int8.onnx (if it passed edge-quantize's accuracy gate), probed once and cached in "
+                   "~/.cache/edge-landing; fp32 or int8 to choose")
+    m.add_argument("--int8", action="store_true", help="same as --precision int8")
     m.add_argument("--depth-model", help="depth ONNX model (with --hvo-model)")
     m.add_argument("--hvo-model", help="HVO ONNX model (with --depth-model)")
     m.add_argument("--calibration", help="calibration.json from edge-calibrate (depth scale)")
@@ -170,7 +172,8 @@ def build_parser() -> argparse.ArgumentParser:
 def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
     a = build_parser().parse_args(argv)
     return RunConfig(camera=a.camera, camera_width=a.camera_width, camera_height=a.camera_height, fps=a.fps,
-                     loop=a.loop, poses=a.poses, model=a.model, depth_model=a.depth_model, hvo_model=a.hvo_model, int8=a.int8,
+                     loop=a.loop, poses=a.poses, model=a.model, depth_model=a.depth_model, hvo_model=a.hvo_model,
+                     precision=Precision.INT8 if a.int8 else Precision.from_string(a.precision),
                      calibration=a.calibration, altitude_scale=not a.no_altitude_scale, mav=a.mav,
                      autopilot=Autopilot.from_string(a.autopilot), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
                      mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
@@ -180,16 +183,24 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      grid=GridMode.from_string(a.grid))
 
 
-def load_inference(cfg: RunConfig) -> Union[JointInference, PairInference]:
-    from edge_landing.runtime.perception.inference import OnnxModel
-
-    if cfg.depth_model and cfg.hvo_model:
-        return PairInference(OnnxModel.load(cfg.depth_model, cfg.threads), OnnxModel.load(cfg.hvo_model, cfg.threads))
-    if cfg.model:
-        return JointInference(OnnxModel.load(cfg.model, cfg.threads))
+def choose_files(cfg: RunConfig) -> Tuple[ModelChoice, ...]:
+    """The file(s) to run: for each FP32 model, it or its INT8 twin (``--precision``, default the faster here)."""
     from edge_landing.runtime.models import default_model_path
 
-    return JointInference(OnnxModel.load(default_model_path(int8=cfg.int8), cfg.threads))
+    probe = ProbeConfig(threads=cfg.threads)
+    given = (cfg.depth_model, cfg.hvo_model) if cfg.depth_model and cfg.hvo_model else (cfg.model,) if cfg.model else ()
+    paths = [Path(p) for p in given if p] or [default_model_path()]
+    return tuple(pick_model(p, cfg.precision, probe) for p in paths)
+
+
+def load_inference(cfg: RunConfig, out: Optional[TextIO] = None) -> Union[JointInference, PairInference]:
+    from edge_landing.runtime.perception.inference import OnnxModel
+
+    choices = choose_files(cfg)
+    for choice in choices:
+        print(f"edge-run: {choice.line()}", file=out or sys.stdout, flush=True)
+    models = [OnnxModel.load(c.path, cfg.threads) for c in choices]
+    return PairInference(models[0], models[1]) if len(models) == 2 else JointInference(models[0])
 
 
 def camera_geometry(cfg: RunConfig, grabber: Grabber, first: Frame) -> Tuple[Intrinsics, Mount]:
@@ -237,7 +248,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
         load_calibration,
     )
 
-    inference = load_inference(cfg)
+    inference = load_inference(cfg, out)
     calibration = load_calibration(cfg.calibration, inference.models[0].sha256) if cfg.calibration else None
     src = SourceConfig(camera=cfg.camera, kind=SourceKind.from_string(cfg.camera), width=cfg.camera_width,
                        height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "")

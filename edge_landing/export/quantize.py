@@ -24,10 +24,12 @@ import numpy as np
 
 from edge_landing.evaluation.scene import Scene
 from edge_landing.runtime.core.choices import ChoiceEnum
+from edge_landing.runtime.core.cpu_features import cpu_features
 from edge_landing.runtime.core.errors import InputError, SceneError
 from edge_landing.runtime.perception.inference import OnnxModel
 
 from .quant_check import FrameRef, Tolerance, check_tolerance, compare, frame_label
+from .quant_speed import SearchConfig, SpeedSearch, search_float_branches
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +42,23 @@ class CalibrationMethod(ChoiceEnum):
     MINMAX = "minmax"
     ENTROPY = "entropy"
     PERCENTILE = "percentile"
+
+
+class QuantFormat(ChoiceEnum):
+    """QDQ: Q/DQ pairs that ONNX Runtime fuses into int8 kernels; QOperator: QLinearConv etc. in the file."""
+
+    QDQ = "qdq"
+    QOPERATOR = "qoperator"
+
+
+class QuantKind(ChoiceEnum):
+    """8-bit integer type of activations or weights."""
+
+    U8 = "u8"
+    S8 = "s8"
+
+
+_ORT_TYPE_NAME = {QuantKind.U8: "QUInt8", QuantKind.S8: "QInt8"}
 
 
 class DepthHead(ChoiceEnum):
@@ -69,6 +88,9 @@ class QuantizeConfig:
     eval_frames: int = 16                # held-out frames compared (after each scene's calibration frames)
     per_channel: bool = True
     reduce_range: bool = True
+    quant_format: QuantFormat = QuantFormat.QDQ
+    activation_type: QuantKind = QuantKind.U8
+    weight_type: QuantKind = QuantKind.S8
     method: CalibrationMethod = CalibrationMethod.MINMAX
     depth_head: DepthHead = DepthHead.AUTO
     exclude_nodes: Tuple[str, ...] = ()
@@ -78,6 +100,13 @@ class QuantizeConfig:
     force: bool = False                  # write the INT8 file even when it fails the tolerance
     threads: int = 2
     progress: bool = True
+    # Time INT8 against FP32 on this machine (interleaved, after warm-up) and record it with the CPU's
+    # features: INT8 that passes the accuracy gate can still be slower than FP32 on a CPU without VNNI.
+    speed_gate: bool = True
+    speed_iterations: int = 30
+    # Leave in float the branches that are slower in INT8 here (export/quant_speed.py); auto = only when full
+    # INT8 is under 1.3x FP32 on this CPU. Needs speed_gate.
+    speed_search: SpeedSearch = SpeedSearch.AUTO
 
     @property
     def calib_scenes(self) -> Tuple[Path, ...]:
@@ -246,12 +275,26 @@ def _settings(config: QuantizeConfig, calib: List[FrameRef], excluded: List[str]
               float_ops: Tuple[str, ...]) -> dict:
     import onnxruntime
 
-    return {"format": "QDQ", "activations": "QUInt8", "weights": "QInt8", "per_channel": config.per_channel,
+    return {"format": "QDQ" if config.quant_format is QuantFormat.QDQ else "QOperator",
+            "activations": _ORT_TYPE_NAME[config.activation_type], "weights": _ORT_TYPE_NAME[config.weight_type],
+            "per_channel": config.per_channel,
             "reduce_range": config.reduce_range, "method": config.method.value, "float_depth_head": float_head,
             "excluded_nodes": excluded, "float_op_types": list(float_ops),
             "calibration": {"scenes": [str(p) for p in config.calib_scenes], "frames": len(calib),
                             "first": frame_label(calib[0]), "last": frame_label(calib[-1])},
-            "fp32_sha256": fp32.sha256, "onnxruntime": onnxruntime.__version__, "tolerance": asdict(config.tolerance)}
+            "fp32_sha256": fp32.sha256, "onnxruntime": onnxruntime.__version__, "tolerance": asdict(config.tolerance),
+            "tuned_on_cpu": cpu_features().to_json()}
+
+
+def speed_check(fp32_path: Path, int8_path: Path, config: QuantizeConfig) -> dict:
+    """INT8 against FP32 on this CPU: p50 latency of each, timed interleaved (the edge-run probe's method with
+    more rounds), at ``config.threads``."""
+    from edge_landing.runtime.perception.precision import ProbeConfig, probe
+
+    fp32_s, int8_s = probe(fp32_path, int8_path, ProbeConfig(threads=config.threads, warmup=5,
+                                                             iterations=config.speed_iterations, max_seconds=60.0))
+    return {"threads": config.threads, "fp32_p50_ms": fp32_s * 1e3, "int8_p50_ms": int8_s * 1e3,
+            "int8_vs_fp32": fp32_s / int8_s, "faster_here": int8_s < fp32_s, "cpu": cpu_features().summary()}
 
 
 class _QuantizerLogFilter(logging.Filter):
@@ -275,7 +318,8 @@ def _run_quantizer(src: Path, dst: Path, reader: SceneCalibrationReader, config:
     """Run ONNX Runtime's static quantizer; returns how many weight channels had their scale raised so that
     the int32 bias fits (each such channel loses weight precision: a hint when the tolerance trips)."""
     from onnxruntime.quantization import CalibrationMethod as OrtMethod
-    from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization import QuantFormat as OrtFormat
+    from onnxruntime.quantization import QuantType, quantize_static
     from onnxruntime.quantization.registry import QDQRegistry, QLinearOpsRegistry
 
     op_types = sorted((set(QLinearOpsRegistry) | set(QDQRegistry)) - set(float_ops))
@@ -285,9 +329,11 @@ def _run_quantizer(src: Path, dst: Path, reader: SceneCalibrationReader, config:
     logging.getLogger().addFilter(quiet)
     try:
         # Not CalibMaxIntermediateOutputs: in this ONNX Runtime it drops the collected chunk instead of merging it.
-        quantize_static(str(src), str(dst), reader, quant_format=QuantFormat.QDQ, per_channel=config.per_channel,
-                        reduce_range=config.reduce_range, activation_type=QuantType.QUInt8,
-                        weight_type=QuantType.QInt8, nodes_to_exclude=excluded, calibrate_method=method,
+        kind = {QuantKind.U8: QuantType.QUInt8, QuantKind.S8: QuantType.QInt8}
+        fmt = OrtFormat.QDQ if config.quant_format is QuantFormat.QDQ else OrtFormat.QOperator
+        quantize_static(str(src), str(dst), reader, quant_format=fmt, per_channel=config.per_channel,
+                        reduce_range=config.reduce_range, activation_type=kind[config.activation_type],
+                        weight_type=kind[config.weight_type], nodes_to_exclude=excluded, calibrate_method=method,
                         op_types_to_quantize=op_types)
     finally:
         logging.getLogger().removeFilter(quiet)
@@ -347,18 +393,33 @@ def quantize(input: os.PathLike | str, output: os.PathLike | str, config: Quanti
         if float_head and fp32.contract.depth is not None:     # (checked above: float_head implies a depth head)
             excluded += [n for n in depth_head_nodes(model, fp32.contract.depth.output) if n not in excluded]
         del model
-        reader = SceneCalibrationReader(calib, fp32.prepare, fp32.contract.input.name, config.progress)
         float_ops = (config.float_op_types if config.float_op_types is not None
                      else float_op_types_for(fp32.contract.arch))
-        raised = _run_quantizer(pre, out_tmp, reader, config, excluded, float_ops)
+
+        def build(extra: List[str], path: Path) -> int:
+            reader = SceneCalibrationReader(calib, fp32.prepare, fp32.contract.input.name, config.progress)
+            raised = _run_quantizer(pre, path, reader, config, excluded + extra, float_ops)
+            _write_metadata(path, fp32, {"search_candidate": True})   # the contract, so that it loads
+            return raised
+
+        raised = build([], out_tmp)
+        search: dict = {}
+        if config.speed_gate and config.speed_search is not SpeedSearch.NEVER:
+            search_cfg = SearchConfig(config.speed_search, threads=config.threads)
+            out_tmp, kept_float, search = search_float_branches(src, pre, out_tmp, excluded, build, search_cfg)
+            excluded += kept_float
         settings = {**_settings(config, calib, excluded, float_head, fp32, float_ops),
                     "subpixel_conv_transposes": rewritten, "weight_channels_scaled_for_bias": raised}
+        if search:
+            settings["speed_search"] = search
         _write_metadata(out_tmp, fp32, settings)
         comparison = compare(fp32, OnnxModel.load(out_tmp, threads=config.threads), held_out,
                              config.progress)
         reasons = check_tolerance(comparison, config.tolerance)
         passed = not reasons
         settings = {**settings, "comparison": comparison, "passed": passed, "forced": bool(reasons) and config.force}
+        if config.speed_gate:
+            settings["speed"] = speed_check(src, out_tmp, config)
         _write_metadata(out_tmp, fp32, settings)
         report = QuantReport(src, dst, written=False, passed=passed, reasons=reasons, settings=settings,
                              comparison=comparison, size_fp32_mb=src.stat().st_size / 1e6,

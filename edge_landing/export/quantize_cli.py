@@ -5,6 +5,8 @@
     edge-quantize model.onnx --calib suburban/ urban/ --frames 16 --out model.int8.onnx   # 8 + 8 frames
 
 Exits non-zero with one line when INT8 loses more than the tolerance (the INT8 file is then not written).
+Then INT8 is timed against FP32 on this CPU (interleaved, --threads) and the result is recorded in the
+file with the CPU's ISA features: edge-run --precision auto uses INT8 only where it is faster.
 Memory: ONNX Runtime's calibrator keeps every activation of every calibration frame (DenseDepth at 480x640:
 4.6 GB peak with --frames 4), so use few frames for the big networks.
 """
@@ -18,10 +20,13 @@ from typing import Sequence
 from edge_landing.cli.common import CliParser, output_file, run_cli
 from edge_landing.runtime.core.errors import EdgeError, InputError
 
+from .quant_speed import SpeedSearch
 from .quantize import (
     CalibrationMethod,
     DepthHead,
+    QuantFormat,
     QuantizeConfig,
+    QuantKind,
     QuantReport,
     Tolerance,
     quantize,
@@ -53,6 +58,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(depth_head=DepthHead.AUTO)
     p.add_argument("--method", default="minmax", help="calibration: minmax (default), entropy, percentile")
     p.add_argument("--no-per-channel", action="store_true", help="per-tensor weight scales")
+    p.add_argument("--format", default="qdq", help="qdq (default) or qoperator (QLinearConv etc. in the file)")
+    p.add_argument("--activations", default="u8", help="activation type: u8 (default) or s8")
+    p.add_argument("--weights", default="s8", help="weight type: s8 (default) or u8")
     p.add_argument("--no-reduce-range", action="store_true", help="8-bit weights (only for VNNI CPUs)")
     p.add_argument("--exclude-node", action="append", default=[], help="keep this node in float (repeatable)")
     p.add_argument("--float-op-type", action="append", default=None,
@@ -61,6 +69,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-subpixel", action="store_true",
                    help="keep ConvTranspose as it is (default: rewrite it as Conv + DepthToSpace so it quantizes)")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--no-speed-gate", action="store_true",
+                   help="do not time INT8 against FP32 on this CPU (default: timed, recorded with the CPU's features)")
+    p.add_argument("--speed-search", default="auto",
+                   help="leave in float the top-level branches that are slower in INT8 on this CPU, found by timing: "
+                        "auto (default: only when full INT8 is under 1.3x FP32 here), always, never")
     p.add_argument("--max-delta1-drop", type=float, default=t.max_delta1_drop)
     p.add_argument("--max-absrel-increase", type=float, default=t.max_abs_rel_increase)
     p.add_argument("--min-depth-agreement", type=float, default=t.min_depth_agreement)
@@ -92,10 +105,23 @@ def format_report(report: QuantReport) -> str:
                      f" -> {_fmt(h['int8']['horizontal_precision'])} (drop {_fmt(h['hprec_drop'])}), "
                      f"same label as FP32: {_fmt(h['agreement'])}")
     excluded = report.settings.get("excluded_nodes", [])
-    lines.append(f"  settings: QDQ u8 activations / s8 weights, per_channel={report.settings['per_channel']}, "
+    st = report.settings
+    lines.append(f"  settings: {st['format']} {st['activations']} activations / {st['weights']} weights, "
+                 f"per_channel={st['per_channel']}, "
                  f"{report.settings.get('subpixel_conv_transposes', 0)} ConvTranspose(s) rewritten as Conv, "
                  f"reduce_range={report.settings['reduce_range']}; kept float: {len(excluded)} named node(s) and "
                  f"op type(s) {', '.join(report.settings['float_op_types']) or 'none'}")
+    speed = report.settings.get("speed")
+    if speed:
+        verdict = ("faster" if speed["faster_here"] else
+                   "NOT faster: edge-run --precision auto keeps FP32 on this CPU")
+        lines.append(f"  speed on this CPU ({speed['cpu']}), {speed['threads']} thread(s), p50: INT8 "
+                     f"{speed['int8_p50_ms']:.2f} ms vs FP32 {speed['fp32_p50_ms']:.2f} ms = "
+                     f"{speed['int8_vs_fp32']:.2f}x, {verdict}")
+    search = report.settings.get("speed_search", {})
+    if search.get("ran"):
+        lines.append(f"  speed search over {search['branches_tried']} branch(es): kept float "
+                     f"{', '.join(search['kept_float']) or 'none'} (full INT8 was {search['int8_vs_fp32_full']:.2f}x FP32)")
     if "hvo" in c and _fmt(c["hvo"]["fp32"]["horizontal_precision"]) == "nan":
         lines.append("  note: horizontal precision is nan because the FP32 model predicts no horizontal pixel on "
                      "these frames (random or untrained weights?)")
@@ -111,11 +137,15 @@ def main_body(argv: Sequence[str] | None = None) -> int:
                     args.max_miou_drop, args.max_hprec_drop, args.min_label_agreement)
     config = QuantizeConfig(calib_scene=tuple(args.calib), calib_frames=args.frames, eval_frames=args.eval_frames,
                             per_channel=not args.no_per_channel, reduce_range=not args.no_reduce_range,
+                            quant_format=QuantFormat.from_string(args.format),
+                            activation_type=QuantKind.from_string(args.activations),
+                            weight_type=QuantKind.from_string(args.weights),
                             method=CalibrationMethod.from_string(args.method), depth_head=args.depth_head,
                             exclude_nodes=tuple(args.exclude_node),
                             float_op_types=tuple(args.float_op_type) if args.float_op_type is not None else None,
                             subpixel=not args.no_subpixel, tolerance=tol, force=args.force,
-                            threads=args.threads, progress=not args.no_progress)
+                            threads=args.threads, progress=not args.no_progress, speed_gate=not args.no_speed_gate,
+                            speed_search=SpeedSearch.from_string(args.speed_search))
     report = quantize(args.model, args.out, config)
     print(format_report(report))
     if not report.passed and not report.written:

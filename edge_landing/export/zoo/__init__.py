@@ -23,6 +23,8 @@ ARCH_MODULES = {
     "safeuav-large": "edge_landing.export.zoo.safeuav",
     "safeuav-small": "edge_landing.export.zoo.safeuav",
     "edgenet": "edge_landing.export.zoo.edgenet",
+    # speed peer only (random weights, needs transformers): edge-bench --models depth-anything-v2-small
+    "depth-anything-v2-small": "edge_landing.export.zoo.depth_anything",
 }
 
 

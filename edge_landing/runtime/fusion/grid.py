@@ -428,8 +428,10 @@ def clearance_from_mask(landable: np.ndarray, cell_m: float) -> np.ndarray:
     The distance transform gives centre-to-centre distance d to the nearest bad cell; the nearest point of
     that cell can be up to half a cell diagonal closer, so d - cell/√2 is a safe lower bound.
     """
-    dist = cv2.distanceTransform(landable.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    clear = dist * np.float32(cell_m) - np.float32(cell_m / math.sqrt(2.0))
-    clear[~landable] = 0.0
-    clearance_m: np.ndarray = np.maximum(clear, 0.0)
-    return clearance_m
+    # A non-landable cell has distance 0, so d·cell - cell/√2 < 0 there and the clamp at 0 zeroes it: no mask
+    # pass needed. In place on the transform's own float32 output: no per-frame temporaries.
+    dist: np.ndarray = cv2.distanceTransform(landable.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    np.multiply(dist, np.float32(cell_m), out=dist)
+    np.subtract(dist, np.float32(cell_m / math.sqrt(2.0)), out=dist)
+    np.maximum(dist, np.float32(0.0), out=dist)
+    return dist
