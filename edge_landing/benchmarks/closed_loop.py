@@ -1,0 +1,385 @@
+"""Closed-loop landing check: autopilot -> vehicle pose -> sim-follow camera -> edge-run -> LANDING_TARGET -> autopilot.
+
+Drives any MAVLink autopilot that does precision landing on LANDING_TARGET (ArduPilot, PX4 SITL, or the tests'
+autopilot model): GUIDED, arm, take off, fly to a start point, LAND with precision landing; meanwhile
+``edge-run --camera sim-follow`` renders the world from the vehicle's pose and sends targets. At touchdown
+(the autopilot disarms) it reports the touchdown point, its distance to edge-run's last sent target, whether the
+world there is level and clear with the requested clearance and whether the path hit anything (ray casting), the
+time to land, a top-down picture and a JSON report. Time is real time: edge-run uses the monotonic clock.
+
+    # one landing against an autopilot already running (e.g. ArduPilot SITL + MAVProxy with three --out)
+    python -m edge_landing.benchmarks.closed_loop --style urban --seed 3 --out /tmp/loop
+    # the goal: 20 landings over unseen worlds with the tests' autopilot model (from a source checkout)
+    python -m edge_landing.benchmarks.closed_loop --autopilot-model --runs 20 --seeds 100-119 --out /tmp/loop20
+
+See docs/closed_loop.md for the ports and autopilot parameters.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import math
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import IO, Any, Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from edge_landing.benchmarks.closed_loop_judge import LandingResult, draw, judge, summarise, write_json
+from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.io.mavlink_link import Autopilot, check_url, load_mavutil
+
+log = logging.getLogger("closed_loop")
+MODEL_CMD = ("{python} -m tests.autopilot_model --style {style} --seed {seed} --out udpout:127.0.0.1:{port0} "
+             "--out udpout:127.0.0.1:{port1} --out udpout:127.0.0.1:{port2}")
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """One closed-loop landing (lengths in metres, angles in degrees as typed, times in seconds)."""
+
+    style: str = "suburban"
+    seed: int = 0
+    out: str = "closed_loop_out"
+    base_port: int = 14560          # driver, edge-run and camera listen on base, base+1, base+2 (udpin)
+    autopilot: Autopilot = Autopilot.ARDUPILOT
+    sitl_cmd: str = ""              # started per landing; {python} {style} {seed} {port0} {port1} {port2}
+    altitude_m: float = 50.0
+    start_north_m: float = 40.0     # start point, local NED from home
+    start_east_m: float = 0.0
+    start_yaw_deg: float = 0.0
+    vehicle_radius_m: float = 1.0
+    margin_m: float = 1.0
+    max_land_time_s: float = 180.0
+    startup_timeout_s: float = 90.0
+    edge_args: str = ""             # more edge-run flags, e.g. "--int8"
+
+    def __post_init__(self) -> None:
+        if not 5.0 <= self.altitude_m <= 120.0:
+            raise InputError(f"--altitude must be in [5, 120] m, got {self.altitude_m}")
+        if not 1024 <= self.base_port <= 65533:
+            raise InputError(f"--base-port must be in [1024, 65533], got {self.base_port}")
+
+    @property
+    def clearance_m(self) -> float:
+        return self.vehicle_radius_m + self.margin_m
+
+    def url(self, k: int) -> str:
+        return f"udpin:127.0.0.1:{self.base_port + k}"
+
+
+class Flight:
+    """The driver's MAVLink side: commands, and the path recorded from LOCAL_POSITION_NED."""
+
+    def __init__(self, url: str, autopilot: Autopilot):
+        check_url(url)
+        self.mavutil: Any = load_mavutil()  # type: ignore[no-untyped-call]
+        self.conn = self.mavutil.mavlink_connection(url, source_system=255, source_component=190)
+        self.autopilot = autopilot
+        self.path: List[Tuple[float, float, float, float]] = []          # (local monotonic s, n, e, d) local NED
+        self.armed = False
+        self.messages: List[str] = []
+
+    def pump(self, timeout_s: float = 0.05) -> None:
+        msg = self.conn.recv_match(blocking=True, timeout=timeout_s)
+        while msg is not None:
+            kind = msg.get_type()
+            if kind == "LOCAL_POSITION_NED":
+                self.path.append((time.monotonic(), msg.x, msg.y, msg.z))
+            elif kind == "HEARTBEAT" and msg.autopilot != self.mavutil.mavlink.MAV_AUTOPILOT_INVALID:
+                # the autopilot itself (not edge-run's or a camera's heartbeat routed by a MAVProxy)
+                self.armed = bool(msg.base_mode & self.mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                self.conn.target_system, self.conn.target_component = msg.get_srcSystem(), msg.get_srcComponent()
+            elif kind == "STATUSTEXT":
+                self.messages.append(msg.text)
+                log.info("autopilot: %s", msg.text)
+            msg = self.conn.recv_match(blocking=False)
+
+    def wait(self, what: str, done: Callable[[], bool], timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            if time.monotonic() > deadline:
+                raise InputError(f"closed loop: {what} did not happen within {timeout_s:.0f} s")
+            self.pump()
+
+    def heartbeat(self) -> None:
+        m = self.mavutil.mavlink
+        self.conn.mav.heartbeat_send(m.MAV_TYPE_GCS, m.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+    def has_position(self) -> bool:
+        return bool(self.path)
+
+    def position(self) -> np.ndarray:
+        """The latest local NED position (call after has_position)."""
+        return np.array(self.path[-1][1:]) if self.path else np.full(3, np.nan)
+
+    def command(self, command: int, *params: float) -> None:
+        p = list(params) + [0.0] * (7 - len(params))
+        self.conn.mav.command_long_send(self.conn.target_system, self.conn.target_component, command, 0, *p)
+
+    def set_mode(self, name: str) -> None:
+        mapping = self.conn.mode_mapping() or {}
+        if name not in mapping:
+            raise InputError(f"closed loop: the autopilot has no {name} mode (modes: {sorted(mapping)})")
+        self.conn.set_mode(mapping[name])
+
+    def goto(self, ned: np.ndarray, yaw_rad: float) -> None:
+        north, east, down = (float(v) for v in ned)
+        m = self.mavutil.mavlink
+        mask = 0b0000_1001_1111_1000  # positions + yaw; ignore velocity, acceleration, yaw rate
+        self.conn.mav.set_position_target_local_ned_send(0, self.conn.target_system, self.conn.target_component,
+                                                         m.MAV_FRAME_LOCAL_NED, mask, north, east, down,
+                                                         0, 0, 0, 0, 0, 0, yaw_rad, 0)
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+def fly(cfg: LoopConfig, flight: Flight) -> Tuple[float, float, float]:
+    """Take off, fly to the start, LAND; returns (take-off time, LAND time, touchdown time) on the local clock.
+
+    ArduPilot: GUIDED, arm, MAV_CMD_NAV_TAKEOFF, position targets, LAND mode. PX4 (untested here): position
+    targets streamed in OFFBOARD from the ground up, then MAV_CMD_NAV_LAND with precision landing required.
+    """
+    m = flight.mavutil.mavlink
+    flight.wait("the autopilot's HEARTBEAT and LOCAL_POSITION_NED",
+                lambda: flight.conn.target_system != 0 and flight.has_position(), cfg.startup_timeout_s)
+    home = flight.position()
+    yaw = math.radians(cfg.start_yaw_deg)
+    above_home = np.array([home[0], home[1], -cfg.altitude_m])
+    px4 = cfg.autopilot is Autopilot.PX4
+    if px4:
+        for _ in range(20):
+            flight.goto(above_home, yaw)
+            flight.pump(0.05)
+    flight.set_mode("OFFBOARD" if px4 else "GUIDED")
+    t_takeoff = time.monotonic()
+    for _ in range(10):
+        flight.command(m.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        deadline = time.monotonic() + 1.0
+        while not flight.armed and time.monotonic() < deadline:
+            flight.pump()
+            if px4:
+                flight.goto(above_home, yaw)
+        if flight.armed:
+            break
+    flight.wait("arming", lambda: flight.armed, 1.0)
+    if not px4:
+        flight.command(m.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, cfg.altitude_m)
+
+    def climbed() -> bool:
+        if px4:
+            flight.goto(above_home, yaw)
+        return bool(-flight.position()[2] > cfg.altitude_m - 1.0)
+
+    flight.wait(f"take-off to {cfg.altitude_m:.0f} m", climbed, 90.0)
+    start = np.array([cfg.start_north_m, cfg.start_east_m, -cfg.altitude_m])
+
+    def settled_at_start() -> bool:
+        flight.goto(start, yaw)
+        return bool(np.linalg.norm(flight.position() - start) < 1.5) and _speed(flight) < 0.3
+
+    flight.wait("the flight to the start point", settled_at_start, 120.0)
+    t_land = time.monotonic()
+    if px4:  # NAV_LAND param2 = 2: precision landing required
+        flight.command(m.MAV_CMD_NAV_LAND, 0, 2, 0, math.nan, math.nan, math.nan, math.nan)
+    else:
+        flight.set_mode("LAND")
+    flight.wait("touchdown (disarm)", lambda: not flight.armed, cfg.max_land_time_s + 60.0)
+    return t_takeoff, t_land, time.monotonic()
+
+
+def _speed(flight: Flight) -> float:
+    if len(flight.path) < 5:
+        return math.inf
+    (t0, *p0), (t1, *p1) = flight.path[-5], flight.path[-1]
+    return float(np.linalg.norm(np.subtract(p1, p0)) / max(t1 - t0, 1e-3))
+
+
+def last_sent_target(log_path: Path) -> Tuple[Optional[np.ndarray], int]:
+    """(local NED of edge-run's last target sent to the autopilot, how many were sent) from its --log."""
+    target, sent = None, 0
+    if not log_path.is_file():
+        return None, 0
+    for line in log_path.read_text().splitlines():
+        try:
+            r = json.loads(line)
+        except ValueError:
+            continue  # the last line may be cut by the stop
+        if r.get("valid") and r.get("sent") and r.get("ned_m"):
+            target, sent = np.array(r["ned_m"], np.float64), sent + 1
+    return target, sent
+
+
+def _start(cmd: List[str], log_file: IO[str]) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _stop(proc: Optional[subprocess.Popen[bytes]]) -> None:
+    if proc is None or proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def land_once(cfg: LoopConfig) -> LandingResult:
+    """One closed-loop landing; writes report.json, path.csv, flight.png, targets.jsonl and logs under ``cfg.out``."""
+    from edge_landing import sim
+    from edge_landing.sim.follow import place_home
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    world = sim.build_world(cfg.style, cfg.seed)
+    home_world = place_home(world)
+    result = LandingResult(cfg.style, cfg.seed, [round(float(v), 2) for v in
+                                                 home_world + (cfg.start_north_m, cfg.start_east_m, -cfg.altitude_m)])
+    ports = dict(port0=cfg.base_port, port1=cfg.base_port + 1, port2=cfg.base_port + 2)
+    sitl: Optional[subprocess.Popen[bytes]] = None
+    edge: Optional[subprocess.Popen[bytes]] = None
+    flight = Flight(cfg.url(0), cfg.autopilot)
+    logs = contextlib.ExitStack()
+    try:
+        if cfg.sitl_cmd:
+            cmd = cfg.sitl_cmd.format(python=shlex.quote(sys.executable), style=cfg.style, seed=cfg.seed, **ports)
+            sitl = _start(shlex.split(cmd), logs.enter_context(open(out / "autopilot.log", "w")))
+        edge = _start([sys.executable, "-m", "edge_landing.cli.run", "--camera",
+                       f"sim-follow:{cfg.style}:{cfg.seed}@{cfg.url(2)}", "--mav", cfg.url(1),
+                       "--autopilot", cfg.autopilot.value, "--log", str(out / "targets.jsonl"),
+                       "--vehicle-radius", str(cfg.vehicle_radius_m), "--margin", str(cfg.margin_m),
+                       *shlex.split(cfg.edge_args)], logs.enter_context(open(out / "edge-run.log", "w")))
+        flight.heartbeat()
+        running = edge
+
+        def edge_ready() -> bool:
+            decisions = out / "targets.jsonl"
+            return running.poll() is not None or (decisions.is_file() and decisions.stat().st_size > 0)
+
+        flight.wait("edge-run's first decision", edge_ready, cfg.startup_timeout_s)
+        if edge.poll() is not None:
+            raise InputError(f"closed loop: edge-run exited with {edge.returncode}; see {out / 'edge-run.log'}")
+        t_takeoff, t_land, t_down = fly(cfg, flight)
+        result.land_time_s, result.flight_time_s = t_down - t_land, t_down - t_takeoff
+    except InputError as exc:
+        result.notes.append(str(exc))
+    finally:
+        _stop(edge)
+        _stop(sitl)
+        flight.close()
+        logs.close()
+    target, result.targets_sent = last_sent_target(out / "targets.jsonl")
+    target_world = None if target is None else home_world + target
+    result.notes += flight.messages[-20:]
+    if flight.path:
+        path_world = home_world + np.array([p[1:] for p in flight.path])
+        np.savetxt(out / "path.csv", np.column_stack([[p[0] - flight.path[0][0] for p in flight.path], path_world]),
+                   delimiter=",", header="t_s,north_m,east_m,down_m (world NED)", fmt="%.3f")
+        if result.notes and not math.isfinite(result.land_time_s):
+            result.safe_why = "no touchdown: " + result.notes[0]
+        else:
+            judge(world, path_world, target_world, cfg.clearance_m, result)
+        draw(world, path_world, target_world, home_world, result, cfg.clearance_m, str(out / "flight.png"))
+    write_json(str(out / "report.json"), result.to_json())
+    return result
+
+
+def random_start(cfg: LoopConfig, rng: np.random.Generator) -> LoopConfig:
+    """A start 30–60 m from home at a random bearing and heading whose straight path at altitude is clear."""
+    from edge_landing import sim
+    from edge_landing.sim.follow import place_home
+
+    world = sim.build_world(cfg.style, cfg.seed)
+    home = place_home(world)
+    for _ in range(200):
+        dist, bearing, yaw = rng.uniform(30, 60), rng.uniform(0, 2 * math.pi), rng.uniform(-180, 180)
+        n, e = dist * math.cos(bearing), dist * math.sin(bearing)
+        s = np.linspace(0, 1, 40)
+        below = world.surface_z(home[0] + n * s, home[1] + e * s)
+        if np.min(below - (home[2] - cfg.altitude_m)) > 15.0:
+            return replace(cfg, start_north_m=round(n, 1), start_east_m=round(e, 1), start_yaw_deg=round(yaw, 1))
+    raise InputError(f"no clear start point at {cfg.altitude_m:.0f} m in the {cfg.style} world of seed {cfg.seed}")
+
+
+def parse_seeds(text: str) -> List[int]:
+    seeds: List[int] = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        if not a.strip().isdigit() or (b and not b.strip().isdigit()):
+            raise InputError(f"--seeds '{text}': expected numbers and ranges like 100-109,120")
+        seeds += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    return seeds
+
+
+def run_many(cfg: LoopConfig, runs: int, seeds: Sequence[int], out: IO[str] = sys.stdout) -> Dict[str, Any]:
+    """``runs`` landings from random starts; styles alternate, seeds cycle; a summary JSON at the end."""
+    results: List[LandingResult] = []
+    for k in range(runs):
+        style = ("suburban", "urban")[k % 2]
+        seed = seeds[k % len(seeds)]
+        run_cfg = random_start(replace(cfg, style=style, seed=seed, out=str(Path(cfg.out) / f"run{k:02d}_{style}_{seed}")),
+                               np.random.default_rng([seed, k, 0xC105]))
+        r = land_once(run_cfg)
+        results.append(r)
+        print(f"run {k}: {style} seed {seed}: {'OK' if r.ok(cfg.max_land_time_s) else 'FAIL'} touchdown "
+              f"{r.touchdown_to_target_m:.2f} m from target, safe {r.safe} ({r.safe_why}), hit {r.hit}, "
+              f"land {r.land_time_s:.0f} s", file=out, flush=True)
+    summary = summarise(results, cfg.max_land_time_s)
+    write_json(str(Path(cfg.out) / "summary.json"), {"summary": summary, "runs": [r.to_json() for r in results]})
+    print(json.dumps(summary), file=out, flush=True)
+    return summary
+
+
+def _main(argv: Optional[Sequence[str]] = None) -> int:
+    p = CliParser(prog="closed_loop", description=__doc__.split("\n\n")[0],
+                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
+    p.add_argument("--style", default="suburban")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="closed_loop_out", help="folder for the report, picture and logs")
+    p.add_argument("--base-port", type=int, default=14560, help="driver, edge-run, camera listen on udpin "
+                   "127.0.0.1 at this port, +1, +2 (default 14560)")
+    p.add_argument("--autopilot", default="ardupilot", help="ardupilot or px4 (targets and modes)")
+    p.add_argument("--sitl-cmd", default="", help="command started for each landing ({python} {style} {seed} "
+                   "{port0} {port1} {port2} are filled in)")
+    p.add_argument("--autopilot-model", action="store_true", help="start the tests' autopilot model (a test "
+                   "double; needs a source checkout, run from its root)")
+    p.add_argument("--altitude", type=float, default=50.0)
+    p.add_argument("--start", type=float, nargs=3, default=(40.0, 0.0, 0.0), metavar=("NORTH", "EAST", "YAW_DEG"))
+    p.add_argument("--vehicle-radius", type=float, default=1.0)
+    p.add_argument("--margin", type=float, default=1.0)
+    p.add_argument("--edge-args", default="", help="more edge-run flags, quoted")
+    p.add_argument("--runs", type=int, default=0, help="N landings from random starts (styles alternate)")
+    p.add_argument("--seeds", default="100-119", help="world seeds for --runs, e.g. 100-119")
+    a = p.parse_args(argv)
+    sitl_cmd = a.sitl_cmd
+    if a.autopilot_model:
+        if not Path("tests/autopilot_model.py").is_file():
+            raise InputError("--autopilot-model needs a source checkout: run from the repository root "
+                             "(tests/autopilot_model.py not found)")
+        sitl_cmd = MODEL_CMD
+    cfg = LoopConfig(a.style, a.seed, a.out, a.base_port, Autopilot.from_string(a.autopilot), sitl_cmd, a.altitude,
+                     a.start[0], a.start[1], a.start[2], a.vehicle_radius, a.margin, edge_args=a.edge_args)
+    if a.runs:
+        summary = run_many(cfg, a.runs, parse_seeds(a.seeds))
+        return 0 if summary["ok"] == a.runs else 1
+    r = land_once(cfg)
+    print(json.dumps(r.to_json()))
+    return 0 if r.ok(cfg.max_land_time_s) else 1
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    return run_cli(_main, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
