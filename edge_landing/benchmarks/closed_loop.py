@@ -32,7 +32,15 @@ from typing import IO, Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from edge_landing.benchmarks.closed_loop_judge import LandingResult, draw, judge, summarise, write_json
+from edge_landing.benchmarks.closed_loop_judge import (
+    LandingResult,
+    draw,
+    judge,
+    summarise,
+    targets_safe_share,
+    until_touchdown,
+    write_json,
+)
 from edge_landing.cli.common import CliParser, run_cli
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.io.mavlink_link import Autopilot, check_url, load_mavutil
@@ -204,19 +212,18 @@ def _speed(flight: Flight) -> float:
     return float(np.linalg.norm(np.subtract(p1, p0)) / max(t1 - t0, 1e-3))
 
 
-def last_sent_target(log_path: Path) -> Tuple[Optional[np.ndarray], int]:
-    """(local NED of edge-run's last target sent to the autopilot, how many were sent) from its --log."""
-    target, sent = None, 0
-    if not log_path.is_file():
-        return None, 0
-    for line in log_path.read_text().splitlines():
-        try:
-            r = json.loads(line)
-        except ValueError:
-            continue  # the last line may be cut by the stop
-        if r.get("valid") and r.get("sent") and r.get("ned_m"):
-            target, sent = np.array(r["ned_m"], np.float64), sent + 1
-    return target, sent
+def sent_targets(log_path: Path) -> np.ndarray:
+    """Local NED (N×3) of every target edge-run sent to the autopilot, in order, from its ``--log``."""
+    out: List[List[float]] = []
+    if log_path.is_file():
+        for line in log_path.read_text().splitlines():
+            try:
+                r = json.loads(line)
+            except ValueError:
+                continue  # the last line may be cut by the stop
+            if r.get("valid") and r.get("sent") and r.get("ned_m"):
+                out.append([float(v) for v in r["ned_m"]])
+    return np.array(out, np.float64).reshape(-1, 3)
 
 
 def _start(cmd: List[str], log_file: IO[str]) -> subprocess.Popen[bytes]:
@@ -278,12 +285,15 @@ def land_once(cfg: LoopConfig) -> LandingResult:
         _stop(sitl)
         flight.close()
         logs.close()
-    target, result.targets_sent = last_sent_target(out / "targets.jsonl")
-    target_world = None if target is None else home_world + target
+    targets_world = home_world + sent_targets(out / "targets.jsonl")
+    result.targets_sent = len(targets_world)
+    result.targets_safe_share = targets_safe_share(world, targets_world, cfg.clearance_m)
+    target_world = targets_world[-1] if len(targets_world) else None
     result.notes += flight.messages[-20:]
     if flight.path:
-        path_world = home_world + np.array([p[1:] for p in flight.path])
-        np.savetxt(out / "path.csv", np.column_stack([[p[0] - flight.path[0][0] for p in flight.path], path_world]),
+        path_world = until_touchdown(world, home_world + np.array([p[1:] for p in flight.path]))
+        times = [p[0] - flight.path[0][0] for p in flight.path[: len(path_world)]]
+        np.savetxt(out / "path.csv", np.column_stack([times, path_world]),
                    delimiter=",", header="t_s,north_m,east_m,down_m (world NED)", fmt="%.3f")
         if result.notes and not math.isfinite(result.land_time_s):
             result.safe_why = "no touchdown: " + result.notes[0]
@@ -371,7 +381,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
                      a.start[0], a.start[1], a.start[2], a.vehicle_radius, a.margin, edge_args=a.edge_args)
     if a.runs:
         summary = run_many(cfg, a.runs, parse_seeds(a.seeds))
-        return 0 if summary["ok"] == a.runs else 1
+        return 0 if summary["goal_met"] else 1
     r = land_once(cfg)
     print(json.dumps(r.to_json()))
     return 0 if r.ok(cfg.max_land_time_s) else 1

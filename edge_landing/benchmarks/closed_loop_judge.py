@@ -34,6 +34,7 @@ class LandingResult:
     land_time_s: float = math.nan        # LAND command to touchdown
     flight_time_s: float = math.nan      # take-off command to touchdown
     targets_sent: int = 0
+    targets_safe_share: float = math.nan  # of the sent targets, the share on ground-truth safe ground
     notes: List[str] = field(default_factory=list)
 
     def ok(self, max_land_time_s: float) -> bool:
@@ -69,6 +70,20 @@ def path_hits(world: Any, path_world: np.ndarray, radius_m: float = BODY_RADIUS_
     return False, ""
 
 
+def until_touchdown(world: Any, path_world: np.ndarray, airborne_m: float = 1.0, contact_m: float = 0.05) -> np.ndarray:
+    """The path up to its first contact with the world's surface after it was airborne.
+
+    An autopilot's simulator (ArduPilot or PX4 SITL) has its own flat ground at home height; the world's
+    terrain and roofs differ from it, so the touchdown in the world is where the path first meets its surface.
+    """
+    agl = world.surface_z(path_world[:, 0], path_world[:, 1]) - path_world[:, 2]
+    up = np.flatnonzero(agl > airborne_m)
+    if len(up) == 0:
+        return path_world
+    down = np.flatnonzero(agl[up[0]:] <= contact_m)
+    return path_world if len(down) == 0 else path_world[: up[0] + int(down[0]) + 1]
+
+
 def judge(world: Any, path_world: np.ndarray, target_world: Optional[np.ndarray], clearance_m: float,
           result: LandingResult) -> LandingResult:
     """Fill the touchdown verdicts of ``result`` from the flown path and the last committed target."""
@@ -81,6 +96,15 @@ def judge(world: Any, path_world: np.ndarray, target_world: Optional[np.ndarray]
         result.target_world_ned_m = [round(float(v), 3) for v in target_world]
         result.touchdown_to_target_m = float(np.linalg.norm(touchdown[:2] - target_world[:2]))
     return result
+
+
+def targets_safe_share(world: Any, targets_world: np.ndarray, clearance_m: float) -> float:
+    """Share of sent targets (N×3 world NED) on level, clear ground with the clearance: were the targets
+    themselves safe, whatever the autopilot made of them?"""
+    if len(targets_world) == 0:
+        return math.nan
+    cfg = TruthConfig(log="", clearance_m=clearance_m)
+    return float(np.mean([check_target(world, float(n), float(e), cfg)[0] for n, e in targets_world[:, :2]]))
 
 
 def draw(world: Any, path_world: np.ndarray, target_world: Optional[np.ndarray], home_world: np.ndarray,
@@ -125,15 +149,22 @@ def draw(world: Any, path_world: np.ndarray, target_world: Optional[np.ndarray],
 
 
 def summarise(results: Sequence[LandingResult], max_land_time_s: float) -> Dict[str, Any]:
-    """The goal's figures over many landings."""
+    """The goal's figures over many landings, and whether the goal holds: >= 95 % on safe ground (19 of 20),
+    none hit anything, median touchdown <= 0.5 m from the committed target, every landing within the time."""
+    n = len(results)
     dist = [r.touchdown_to_target_m for r in results if math.isfinite(r.touchdown_to_target_m)]
-    return {"landings": len(results), "touched_down": sum(r.touchdown_world_ned_m is not None for r in results),
-            "safe": sum(r.safe for r in results), "hit": sum(r.hit for r in results),
-            "within_time": sum(r.land_time_s <= max_land_time_s for r in results),
-            "ok": sum(r.ok(max_land_time_s) for r in results),
-            "median_touchdown_to_target_m": float(np.median(dist)) if dist else None,
-            "max_touchdown_to_target_m": float(np.max(dist)) if dist else None,
-            "median_land_time_s": float(np.median([r.land_time_s for r in results])) if results else None}
+    shares = [r.targets_safe_share for r in results if math.isfinite(r.targets_safe_share)]
+    s: Dict[str, Any] = {
+        "landings": n, "touched_down": sum(r.touchdown_world_ned_m is not None for r in results),
+        "safe": sum(r.safe for r in results), "hit": sum(r.hit for r in results),
+        "within_time": sum(r.land_time_s <= max_land_time_s for r in results),
+        "median_touchdown_to_target_m": float(np.median(dist)) if dist else None,
+        "max_touchdown_to_target_m": float(np.max(dist)) if dist else None,
+        "median_land_time_s": float(np.median([r.land_time_s for r in results])) if results else None,
+        "sent_targets_safe_share_median": float(np.median(shares)) if shares else None}
+    s["goal_met"] = bool(n and s["safe"] >= math.ceil(0.95 * n) and s["hit"] == 0 and s["within_time"] == n
+                         and len(dist) == n and s["median_touchdown_to_target_m"] <= 0.5)
+    return s
 
 
 def write_json(path: str, data: Dict[str, Any]) -> None:
