@@ -67,6 +67,17 @@ def test_sim_follow_camera_string():
     assert FollowSpec.parse("sim-follow").seed == 0
 
 
+def test_sim_follow_without_the_sim_extra_is_one_line(monkeypatch):
+    import sys
+
+    from edge_landing.runtime.core.errors import MissingExtraError
+    from edge_landing.runtime.io.sources import open_reader
+
+    monkeypatch.setitem(sys.modules, "embreex", None)                     # as if the extra were not installed
+    with pytest.raises(MissingExtraError, match=r"edge-landing\[sim\]"):
+        open_reader(SourceConfig.from_string("sim-follow:urban:3"))
+
+
 def test_follow_camera_renders_the_pose_the_autopilot_reports():
     """The model hovers 30 m above home facing 60°; the camera must render exactly that view, stamped with
     the pose's time, and the grabber must use that time as the frame's capture time."""
