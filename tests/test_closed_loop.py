@@ -109,6 +109,55 @@ def test_follow_camera_renders_the_pose_the_autopilot_reports():
         thread.join(timeout=10)
 
 
+def test_runtime_telemetry_at_the_frame_time_is_the_pose_the_camera_rendered():
+    """While the vehicle accelerates and turns, edge-run's own telemetry (its link, another port) looked up at
+    a frame's capture time gives the pose that frame was rendered from: the stamp is consistent."""
+    from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
+    from edge_landing.runtime.io.telemetry import TelemetryBuffer
+    from tests.autopilot_model import GUIDED
+
+    base = free_udp_ports(2)
+    model = AutopilotModel(ModelConfig("suburban", 0, (f"udpout:127.0.0.1:{base}", f"udpout:127.0.0.1:{base + 1}")))
+    model.pos = model.home + np.array([0.0, 0.0, -40.0])
+    model.armed, model.mode = True, GUIDED                               # the test double's state, set directly
+    model.target_local, model.target_yaw = np.array([60.0, 30.0, -40.0]), 1.0
+    thread = threading.Thread(target=model.run, kwargs={"duration_s": 7.0}, daemon=True)
+    thread.start()
+    telemetry = TelemetryBuffer()
+    link = MavlinkLink(LinkConfig(f"udpin:127.0.0.1:{base + 1}"), telemetry).start()
+    reader = FollowReader(SourceConfig.from_string(f"sim-follow:suburban:0@udpin:127.0.0.1:{base}"))
+    rendered = {}
+    read = reader.read
+
+    def read_and_remember():
+        rgb = read()
+        rendered[reader.capture_time_s] = reader.last_pose
+        return rgb
+
+    reader.read = read_and_remember
+    grabber = Grabber(SourceConfig.from_string(reader.name), opener=lambda _c: reader, telemetry=telemetry).start()
+    errors = []
+    try:
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end:
+            frame = grabber.next(timeout_s=1.0)
+            if frame is None:
+                continue
+            time.sleep(0.1)                                              # as after inference
+            state, pose = telemetry.state_at(frame.capture_time_s), rendered[frame.capture_time_s]
+            if state is not None and state.position_ned_m is not None:
+                errors.append((float(np.linalg.norm(state.position_ned_m - pose.position_ned_m)),
+                               abs(state.attitude.pitch_rad - pose.attitude.pitch_rad),
+                               abs(state.attitude.yaw_rad - pose.attitude.yaw_rad), float(np.linalg.norm(model.vel))))
+    finally:
+        grabber.stop()
+        link.stop()
+        thread.join(timeout=10)
+    e = np.array(errors)
+    assert len(e) >= 20 and e[:, 3].max() > 3.0                           # it flew, fast
+    assert e[:, 0].max() < 0.05 and np.degrees(e[:, 1:3].max()) < 0.1     # same pose: metres, degrees
+
+
 def test_precland_estimator_life_cycle():
     """Init needs updates < 0.5 s apart for 2 s; a longer gap restarts it; the target is lost 2 s after the last."""
     p = PrecLand(ModelConfig())
