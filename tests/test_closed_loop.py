@@ -94,7 +94,7 @@ def test_follow_camera_renders_the_pose_the_autopilot_reports():
         grabber.start()
         frame = grabber.next(timeout_s=5.0)
         assert frame is not None
-        pose = reader.last_pose
+        pose, state = reader.last_pose, reader.last_state                  # state: the frame's own telemetry (no --mav)
         assert frame.capture_time_s == reader.capture_time_s == pose.time_s
         assert 0.0 <= time.monotonic() - frame.capture_time_s < 2.0
         assert pose.position_ned_m == pytest.approx([0.0, 0.0, -30.0], abs=1e-3)
@@ -104,6 +104,8 @@ def test_follow_camera_renders_the_pose_the_autopilot_reports():
         got = reader.renderer.geometry(reader.home_world_ned_m + pose.position_ned_m, pose.attitude)
         np.testing.assert_allclose(got.depth_m, expected.depth_m, rtol=1e-4)
         assert frame.rgb.shape == (120, 160, 3) and frame.rgb.std() > 5     # a real image, not a blank
+        assert state.time_s == pose.time_s and state.position_ned_m == pytest.approx([0.0, 0.0, -30.0], abs=1e-3)
+        assert state.agl_m == pytest.approx(30.0, abs=0.05)                 # home is on level ground
     finally:
         grabber.stop()
         thread.join(timeout=10)

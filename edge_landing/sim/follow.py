@@ -27,6 +27,7 @@ import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.messages import VehicleState
 from edge_landing.runtime.io.sources import Reader, SourceConfig
 
 from .effects import Effects, sample_effects
@@ -125,7 +126,7 @@ class MavlinkPoseProvider:
         from edge_landing.runtime.io.mavlink_link import check_url, load_mavutil
 
         check_url(url)
-        self._mavutil: Any = load_mavutil()  # type: ignore[no-untyped-call]
+        self._mavutil: Any = load_mavutil()
         m = self._mavutil.mavlink
         self._conn = self._mavutil.mavlink_connection(url, source_system=1, source_component=m.MAV_COMP_ID_CAMERA)
         self.url = url
@@ -253,8 +254,9 @@ class FollowReader(Reader):
     """Renders the world from the newest autopilot pose at ``fps`` (default 10).
 
     ``capture_time_s`` is the pose's local time, which the grabber uses as the frame's capture time, so
-    the runtime matches the same pose from its own telemetry. A pose older than ``POSE_TIMEOUT_S`` is a
-    camera fault (OSError: the grabber reopens the camera with back-off).
+    the runtime matches the same pose from its own telemetry (the autopilot link); ``last_state`` is that
+    pose with the ray-cast height above ground, the frame's own telemetry when edge-run has no link. A pose
+    older than ``POSE_TIMEOUT_S`` is a camera fault (OSError: the grabber reopens the camera with back-off).
     """
 
     def __init__(self, config: SourceConfig, provider: Optional[PoseProvider] = None, rangefinder: bool = True):
@@ -285,9 +287,14 @@ class FollowReader(Reader):
         pose = self._wait_for_pose()
         world_ned = self.home_world_ned_m + pose.position_ned_m
         rgb = self.renderer.render(world_ned, pose.attitude, self.effects, self._noise).rgb
+        agl_m = height_above_ground_m(self.world, world_ned)
         if self.rangefinder:
-            self.provider.send_rangefinder(height_above_ground_m(self.world, world_ned))
+            self.provider.send_rangefinder(agl_m)
         self.capture_time_s, self.last_pose = pose.time_s, pose
+        # The frame's own pose, for edge-run without --mav (with an autopilot link edge-run uses the link's
+        # telemetry instead, as on the drone): the pose it was rendered from and the ray-cast height.
+        self.last_state = VehicleState(pose.time_s, pose.attitude, pose.position_ned_m.copy(), agl_m,
+                                       f"sim-follow ray cast ({pose.source})")
         return rgb
 
     def _wait_for_pose(self) -> PoseSample:
