@@ -294,6 +294,24 @@ def test_the_hold_clock_stops_while_the_vehicle_is_over_the_spot():
     assert not out.valid and said.startswith("spot dropped: not confirmed for")
 
 
+def test_no_new_spot_farther_than_twice_the_height():
+    """Low and far is a flight past whatever stands in between: such a target is neither sent nor committed; the
+    same spot seen from higher up is."""
+    cont = Continuity(ContinuityConfig())
+    spot = np.array([40.0, 0.0, 0.0])
+    for i, height in enumerate([8.0, 8.0, 8.0, 25.0, 25.0, 25.0]):
+        state = VehicleState(float(i), position_ned_m=np.array([0.0, 0.0, -height]), agl_m=height)
+        target = Target(i, float(i), True, position_body_frd_m=spot - state.position_ned_m, position_ned_m=spot,
+                        clearance_m=3.0, confidence=0.9)
+        out, _ = cont.step(target, state, None, True)
+        if height < 20.0:
+            assert not out.valid and "40 m away at 8 m height, beyond the 2:1 cone" in out.reason
+            assert cont.spot is None
+        else:
+            assert out is target
+    assert cont.spot is not None
+
+
 def test_flickering_cells_do_not_drop_a_committed_spot_but_a_lasting_majority_does():
     """A minority of the cells seen near the spot judged not landable is no contradiction; a majority must last
     ``contradiction_frames`` (10) frames with no clear ground within the confirmation radius (else the grid shows
