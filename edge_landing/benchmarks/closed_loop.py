@@ -3,7 +3,7 @@
 Drives any MAVLink autopilot that does precision landing on LANDING_TARGET (ArduPilot, PX4 SITL, or the tests'
 autopilot model): GUIDED, arm, take off, fly to a start point, LAND with precision landing; meanwhile
 ``edge-run --camera sim-follow`` renders the world from the vehicle's pose and sends targets. At touchdown
-(the autopilot disarms) it reports the touchdown point, its distance to edge-run's last sent target, whether the
+(the autopilot disarms) it reports the touchdown point, its distance to edge-run's last committed spot, whether the
 world there is level and clear with the requested clearance and whether the path hit anything (ray casting), the
 time to land, a top-down picture and a JSON report. Time is real time: edge-run uses the monotonic clock.
 
@@ -32,6 +32,7 @@ from typing import IO, Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from edge_landing.benchmarks.closed_loop_flight import Flight
 from edge_landing.benchmarks.closed_loop_judge import (
     LandingResult,
     draw,
@@ -43,7 +44,7 @@ from edge_landing.benchmarks.closed_loop_judge import (
 )
 from edge_landing.cli.common import CliParser, run_cli
 from edge_landing.runtime.core.errors import InputError
-from edge_landing.runtime.io.mavlink_link import Autopilot, check_url, load_mavutil
+from edge_landing.runtime.io.mavlink_link import Autopilot
 
 log = logging.getLogger("closed_loop")
 MODEL_CMD = ("{python} -m tests.autopilot_model --style {style} --seed {seed} --out udpout:127.0.0.1:{port0} "
@@ -67,7 +68,10 @@ class LoopConfig:
     vehicle_radius_m: float = 1.0
     margin_m: float = 1.0
     max_land_time_s: float = 180.0
+    target_wait_s: float = 30.0     # hover at the start until edge-run sends a target, at most this long
     startup_timeout_s: float = 90.0
+    hold_s: float = 20.0            # edge-run --hold (its default; the clock stops while over the spot)
+    threads: int = 1                # edge-run --threads (ONNX Runtime)
     edge_args: str = ""             # more edge-run flags, e.g. "--int8"
 
     def __post_init__(self) -> None:
@@ -84,75 +88,9 @@ class LoopConfig:
         return f"udpin:127.0.0.1:{self.base_port + k}"
 
 
-class Flight:
-    """The driver's MAVLink side: commands, and the path recorded from LOCAL_POSITION_NED."""
-
-    def __init__(self, url: str, autopilot: Autopilot):
-        check_url(url)
-        self.mavutil: Any = load_mavutil()  # type: ignore[no-untyped-call]
-        self.conn = self.mavutil.mavlink_connection(url, source_system=255, source_component=190)
-        self.autopilot = autopilot
-        self.path: List[Tuple[float, float, float, float]] = []          # (local monotonic s, n, e, d) local NED
-        self.armed = False
-        self.messages: List[str] = []
-
-    def pump(self, timeout_s: float = 0.05) -> None:
-        msg = self.conn.recv_match(blocking=True, timeout=timeout_s)
-        while msg is not None:
-            kind = msg.get_type()
-            if kind == "LOCAL_POSITION_NED":
-                self.path.append((time.monotonic(), msg.x, msg.y, msg.z))
-            elif kind == "HEARTBEAT" and msg.autopilot != self.mavutil.mavlink.MAV_AUTOPILOT_INVALID:
-                # the autopilot itself (not edge-run's or a camera's heartbeat routed by a MAVProxy)
-                self.armed = bool(msg.base_mode & self.mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-                self.conn.target_system, self.conn.target_component = msg.get_srcSystem(), msg.get_srcComponent()
-            elif kind == "STATUSTEXT":
-                self.messages.append(msg.text)
-                log.info("autopilot: %s", msg.text)
-            msg = self.conn.recv_match(blocking=False)
-
-    def wait(self, what: str, done: Callable[[], bool], timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
-        while not done():
-            if time.monotonic() > deadline:
-                raise InputError(f"closed loop: {what} did not happen within {timeout_s:.0f} s")
-            self.pump()
-
-    def heartbeat(self) -> None:
-        m = self.mavutil.mavlink
-        self.conn.mav.heartbeat_send(m.MAV_TYPE_GCS, m.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-
-    def has_position(self) -> bool:
-        return bool(self.path)
-
-    def position(self) -> np.ndarray:
-        """The latest local NED position (call after has_position)."""
-        return np.array(self.path[-1][1:]) if self.path else np.full(3, np.nan)
-
-    def command(self, command: int, *params: float) -> None:
-        p = list(params) + [0.0] * (7 - len(params))
-        self.conn.mav.command_long_send(self.conn.target_system, self.conn.target_component, command, 0, *p)
-
-    def set_mode(self, name: str) -> None:
-        mapping = self.conn.mode_mapping() or {}
-        if name not in mapping:
-            raise InputError(f"closed loop: the autopilot has no {name} mode (modes: {sorted(mapping)})")
-        self.conn.set_mode(mapping[name])
-
-    def goto(self, ned: np.ndarray, yaw_rad: float) -> None:
-        north, east, down = (float(v) for v in ned)
-        m = self.mavutil.mavlink
-        mask = 0b0000_1001_1111_1000  # positions + yaw; ignore velocity, acceleration, yaw rate
-        self.conn.mav.set_position_target_local_ned_send(0, self.conn.target_system, self.conn.target_component,
-                                                         m.MAV_FRAME_LOCAL_NED, mask, north, east, down,
-                                                         0, 0, 0, 0, 0, 0, yaw_rad, 0)
-
-    def close(self) -> None:
-        self.conn.close()
-
-
-def fly(cfg: LoopConfig, flight: Flight) -> Tuple[float, float, float]:
-    """Take off, fly to the start, LAND; returns (take-off time, LAND time, touchdown time) on the local clock.
+def fly(cfg: LoopConfig, flight: Flight, has_target: Optional[Callable[[], bool]] = None) -> Tuple[float, float, float]:
+    """Take off, fly to the start, hover there until ``has_target()`` (at most ``target_wait_s``), LAND;
+    returns (take-off time, LAND time, touchdown time) on the local clock.
 
     ArduPilot: GUIDED, arm, MAV_CMD_NAV_TAKEOFF, position targets, LAND mode. PX4 (untested here): position
     targets streamed in OFFBOARD from the ground up, then MAV_CMD_NAV_LAND with precision landing required.
@@ -196,6 +134,16 @@ def fly(cfg: LoopConfig, flight: Flight) -> Tuple[float, float, float]:
         return bool(np.linalg.norm(flight.position() - start) < 1.5) and _speed(flight) < 0.3
 
     flight.wait("the flight to the start point", settled_at_start, 120.0)
+    if has_target is not None:  # hover until edge-run sends a target, as a pilot would before LAND
+        try:
+            def hover_until_target() -> bool:
+                flight.goto(start, yaw)
+                return has_target()
+
+            flight.wait("edge-run's first target at the start point", hover_until_target, cfg.target_wait_s)
+        except InputError as exc:
+            log.warning("%s; landing anyway", exc)
+            flight.messages.append(f"LAND without a target: {exc}")
     t_land = time.monotonic()
     if px4:  # NAV_LAND param2 = 2: precision landing required
         flight.command(m.MAV_CMD_NAV_LAND, 0, 2, 0, math.nan, math.nan, math.nan, math.nan)
@@ -224,6 +172,37 @@ def sent_targets(log_path: Path) -> np.ndarray:
             if r.get("valid") and r.get("sent") and r.get("ned_m"):
                 out.append([float(v) for v in r["ned_m"]])
     return np.array(out, np.float64).reshape(-1, 3)
+
+
+def last_committed(log_path: Path) -> Optional[np.ndarray]:
+    """Local NED of the last spot edge-run had committed (its ``--log``'s ``committed_ned_m``), or None."""
+    last: Optional[np.ndarray] = None
+    if log_path.is_file():
+        for line in log_path.read_text().splitlines():
+            try:
+                committed = json.loads(line).get("committed_ned_m")
+            except (ValueError, AttributeError):
+                continue  # the last line may be cut by the stop
+            if committed:
+                last = np.array(committed, np.float64)
+    return last
+
+
+def recently_sent(log_path: Path, frames: int = 5, sent: int = 3) -> bool:
+    """Did edge-run send a target in at least ``sent`` of its last ``frames`` decisions (its ``--log``)?"""
+    try:
+        with open(log_path, "rb") as f:
+            f.seek(max(0, f.seek(0, 2) - 8192))
+            lines = f.read().decode(errors="replace").splitlines()[1:]
+    except OSError:
+        return False
+    records = []
+    for line in lines[-frames - 1:]:
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            continue  # a line being written
+    return sum(bool(r.get("sent")) for r in records[-frames:]) >= sent
 
 
 def _start(cmd: List[str], log_file: IO[str]) -> subprocess.Popen[bytes]:
@@ -265,7 +244,8 @@ def land_once(cfg: LoopConfig) -> LandingResult:
                        f"sim-follow:{cfg.style}:{cfg.seed}@{cfg.url(2)}", "--mav", cfg.url(1),
                        "--autopilot", cfg.autopilot.value, "--log", str(out / "targets.jsonl"),
                        "--vehicle-radius", str(cfg.vehicle_radius_m), "--margin", str(cfg.margin_m),
-                       *shlex.split(cfg.edge_args)], logs.enter_context(open(out / "edge-run.log", "w")))
+                       "--hold", str(cfg.hold_s), "--threads", str(cfg.threads), *shlex.split(cfg.edge_args)],
+                      logs.enter_context(open(out / "edge-run.log", "w")))
         flight.heartbeat()
         running = edge
 
@@ -276,7 +256,7 @@ def land_once(cfg: LoopConfig) -> LandingResult:
         flight.wait("edge-run's first decision", edge_ready, cfg.startup_timeout_s)
         if edge.poll() is not None:
             raise InputError(f"closed loop: edge-run exited with {edge.returncode}; see {out / 'edge-run.log'}")
-        t_takeoff, t_land, t_down = fly(cfg, flight)
+        t_takeoff, t_land, t_down = fly(cfg, flight, lambda: recently_sent(out / "targets.jsonl"))
         result.land_time_s, result.flight_time_s = t_down - t_land, t_down - t_takeoff
     except InputError as exc:
         result.notes.append(str(exc))
@@ -288,7 +268,8 @@ def land_once(cfg: LoopConfig) -> LandingResult:
     targets_world = home_world + sent_targets(out / "targets.jsonl")
     result.targets_sent = len(targets_world)
     result.targets_safe_share = targets_safe_share(world, targets_world, cfg.clearance_m)
-    target_world = targets_world[-1] if len(targets_world) else None
+    committed = last_committed(out / "targets.jsonl")
+    target_world = None if committed is None else home_world + committed
     result.notes += flight.messages[-20:]
     if flight.path:
         path_world = until_touchdown(world, home_world + np.array([p[1:] for p in flight.path]))
@@ -367,6 +348,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--start", type=float, nargs=3, default=(40.0, 0.0, 0.0), metavar=("NORTH", "EAST", "YAW_DEG"))
     p.add_argument("--vehicle-radius", type=float, default=1.0)
     p.add_argument("--margin", type=float, default=1.0)
+    p.add_argument("--hold", type=float, default=20.0, help="edge-run --hold (s, default 20)")
+    p.add_argument("--threads", type=int, default=1, help="edge-run --threads (default 1)")
     p.add_argument("--edge-args", default="", help="more edge-run flags, quoted")
     p.add_argument("--runs", type=int, default=0, help="N landings from random starts (styles alternate)")
     p.add_argument("--seeds", default="100-119", help="world seeds for --runs, e.g. 100-119")
@@ -378,7 +361,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
                              "(tests/autopilot_model.py not found)")
         sitl_cmd = MODEL_CMD
     cfg = LoopConfig(a.style, a.seed, a.out, a.base_port, Autopilot.from_string(a.autopilot), sitl_cmd, a.altitude,
-                     a.start[0], a.start[1], a.start[2], a.vehicle_radius, a.margin, edge_args=a.edge_args)
+                     a.start[0], a.start[1], a.start[2], a.vehicle_radius, a.margin, hold_s=a.hold, threads=a.threads,
+                     edge_args=a.edge_args)
     if a.runs:
         summary = run_many(cfg, a.runs, parse_seeds(a.seeds))
         return 0 if summary["goal_met"] else 1
