@@ -10,7 +10,7 @@ time to land, a top-down picture and a JSON report. Time is real time: edge-run 
     # one landing against an autopilot already running (e.g. ArduPilot SITL + MAVProxy with three --out)
     python -m edge_landing.benchmarks.closed_loop --style urban --seed 3 --out /tmp/loop
     # the goal: 20 landings over unseen worlds with the tests' autopilot model (from a source checkout)
-    python -m edge_landing.benchmarks.closed_loop --autopilot-model --runs 20 --seeds 100-119 --out /tmp/loop20
+    python -m edge_landing.benchmarks.closed_loop --autopilot-model --runs 20 --seeds 200-219 --out /tmp/loop20
 
 See docs/closed_loop.md for the ports and autopilot parameters.
 """
@@ -352,7 +352,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--threads", type=int, default=1, help="edge-run --threads (default 1)")
     p.add_argument("--edge-args", default="", help="more edge-run flags, quoted")
     p.add_argument("--runs", type=int, default=0, help="N landings from random starts (styles alternate)")
-    p.add_argument("--seeds", default="100-119", help="world seeds for --runs, e.g. 100-119")
+    p.add_argument("--seeds", default="200-219", help="world seeds for --runs (default 200-219: no test uses them)")
     a = p.parse_args(argv)
     sitl_cmd = a.sitl_cmd
     if a.autopilot_model:
