@@ -85,3 +85,18 @@ def test_a_log_that_names_no_world_is_refused_in_one_line(world, tmp_path, capsy
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "flight.mp4" in err[0] and "not a known sim world" in err[0]
     assert main([str(video), "--style", "suburban", "--seed", "0"]) == 0
+
+
+def test_a_sim_follow_log_is_judged_about_the_autopilots_home(world, tmp_path):
+    """sim-follow targets are in the autopilot's local NED: the home's place in the world is added. The home lies
+    on open level ground, so a target at local (0, 0) is safe; judged in the world's own frame it is elsewhere."""
+    from edge_landing.sim.follow import place_home
+
+    home = place_home(world)
+    log = tmp_path / "t.jsonl"
+    record = {"frame": 0, "capture_time_s": 0.0, "valid": True, "ned_m": [0.0, 0.0, 0.0]}
+    log.write_text(json.dumps(run_header("suburban", 0, "sim-follow:suburban:0", "sim-follow")) + "\n"
+                   + json.dumps(record) + "\n")
+    report = evaluate(TruthConfig(log=str(log), clearance_m=2.0))
+    assert (report["targets"], report["safe"]) == (1, 1)
+    assert np.hypot(*home[:2]) > 5.0                                  # the offset is not a no-op here

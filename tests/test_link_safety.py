@@ -244,6 +244,114 @@ def test_continuity_drops_a_spot_that_fresh_evidence_contradicts():
     assert not out.valid and said == "spot dropped: fresh evidence contradicts it" and cont.spot is None
 
 
+def _committed(spot: np.ndarray, state: VehicleState, frames: int = 3) -> Continuity:
+    cont = Continuity(ContinuityConfig())
+    for i in range(frames):
+        cont.step(Target(i, float(i), True, position_body_frd_m=spot - state.position_ned_m, position_ned_m=spot,
+                         clearance_m=3.0, confidence=0.9), state, None, True)
+    assert cont.spot is not None
+    return cont
+
+
+def test_a_committed_spot_is_sent_while_fusion_picks_another_one():
+    """A frame whose target lies elsewhere does not move the committed spot: the spot is sent (the autopilot does
+    not chase a target jumping between spots while it descends); a confirming target is sent as it is."""
+    state = VehicleState(0.0, position_ned_m=np.array([0.0, 0.0, -30.0]), agl_m=30.0)
+    spot = np.array([8.0, 0.0, 0.0])
+    cont = _committed(spot, state)
+    other = np.array([-12.0, 5.0, 0.0])
+    for i in range(3, 40):                                        # 37 frames in a row elsewhere
+        out, said = cont.step(Target(i, 2.0 + (i - 2) * 0.1, True, position_body_frd_m=other - state.position_ned_m,
+                                     position_ned_m=other, clearance_m=4.0, confidence=0.9), state, None, True)
+        assert out.valid and out.reason.startswith("held: committed spot") and said == ""
+        assert "chose a spot 20.6 m away" in out.reason
+        np.testing.assert_allclose(out.position_ned_m, spot)
+        np.testing.assert_allclose(out.position_body_frd_m, [8.0, 0.0, 30.0])
+    near = spot + np.array([0.5, 0.0, 0.0])
+    confirming = Target(40, 5.9, True, position_body_frd_m=near - state.position_ned_m, position_ned_m=near,
+                        clearance_m=3.0, confidence=0.9)
+    out, _ = cont.step(confirming, state, None, True)
+    assert out is confirming and cont.spot is not None
+    np.testing.assert_allclose(cont.spot.ned_m, near)
+
+
+def test_the_hold_clock_stops_while_the_vehicle_is_over_the_spot():
+    """Descending onto a spot its 45° camera cannot see, the vehicle gets no confirmation: that time does not
+    count against --hold; away from the spot it does."""
+    spot = np.array([8.0, 0.0, 0.0])
+    cont = _committed(spot, VehicleState(0.0, position_ned_m=np.array([0.0, 0.0, -30.0]), agl_m=30.0))
+    for k in range(300):                                           # 30 s at 10 Hz, descending 1 m/s over the spot
+        t = 2.1 + 0.1 * k
+        over = VehicleState(t, position_ned_m=np.array([7.0, 1.0, -30.0 + 0.1 * k]), agl_m=30.0 - 0.1 * k)
+        out, said = cont.step(Target.none(10 + k, t, "no safe spot"), over, None, True)
+        assert out.valid and said == "", k
+    np.testing.assert_allclose(out.position_body_frd_m, [1.0, -1.0, 0.1], atol=1e-9)
+    away = VehicleState(40.0, position_ned_m=np.array([20.0, 0.0, -30.0]), agl_m=30.0)
+    for k in range(19):                                             # 19 s away from it: still held
+        out, said = cont.step(Target.none(400 + k, 32.2 + k, "no safe spot"), away, None, True)
+        assert out.valid
+    out, said = cont.step(Target.none(500, 52.3, "no safe spot"), away, None, True)
+    assert not out.valid and said.startswith("spot dropped: not confirmed for")
+
+
+def test_no_new_spot_farther_than_twice_the_height():
+    """Low and far is a flight past whatever stands in between: such a target is neither sent nor committed; the
+    same spot seen from higher up is."""
+    cont = Continuity(ContinuityConfig())
+    spot = np.array([40.0, 0.0, 0.0])
+    for i, height in enumerate([8.0, 8.0, 8.0, 25.0, 25.0, 25.0]):
+        state = VehicleState(float(i), position_ned_m=np.array([0.0, 0.0, -height]), agl_m=height)
+        target = Target(i, float(i), True, position_body_frd_m=spot - state.position_ned_m, position_ned_m=spot,
+                        clearance_m=3.0, confidence=0.9)
+        out, _ = cont.step(target, state, None, True)
+        if height < 20.0:
+            assert not out.valid and "40 m away at 8 m height, beyond the 2:1 cone" in out.reason
+            assert cont.spot is None
+        else:
+            assert out is target
+    assert cont.spot is not None
+
+
+def test_flickering_cells_do_not_drop_a_committed_spot_but_a_lasting_majority_does():
+    """A minority of the cells seen near the spot judged not landable is no contradiction; a majority must last
+    ``contradiction_frames`` (10) frames with no clear ground within the confirmation radius (else the grid shows
+    the patch displaced); cells only remembered from earlier frames are no evidence (out of view in the descent)."""
+    state = VehicleState(0.0, position_ned_m=np.array([0.0, 0.0, -10.0]), agl_m=10.0)
+    spot = np.array([8.0, 0.0, 0.0])
+    cont = _committed(spot, state)
+    fuser = LandingFuser(FusionConfig(), Intrinsics.from_hfov(64, 48, math.radians(90.0)),
+                         Mount(pitch_rad=math.radians(-45.0)))
+    grid = fuser.fuse(_ground_prediction(0, 4.0, ground_plane_depth(48, 64, AGL_M, fuser.mount)), state, 4.0).grid
+    assert grid is not None
+    cell = grid.cell_of(8.0, 0.0)
+    assert cell is not None and grid.seen[cell] == 1.0 and grid.landable[cell]
+    def with_landable(landable: np.ndarray, clearance_m=None):
+        return type(grid)(grid.frame, grid.cell_m, grid.north0_m, grid.east0_m, grid.ref_down_m, grid.sums,
+                          landable, grid.clearance_m if clearance_m is None else clearance_m, grid.votes, grid.seen,
+                          grid.min_seen_weight)
+
+    r, c = cell
+    minority = grid.landable.copy()
+    minority[r - 1:r + 2, c] = False                               # 3 of the ~13 cells within 1 m
+    majority = grid.landable.copy()
+    majority[r - 2:r + 3, c - 1:c + 1] = False                     # all but the eastern ones: ~70 %
+    flicker = with_landable(minority)
+    remembered = type(grid)(grid.frame, grid.cell_m, grid.north0_m, grid.east0_m, grid.ref_down_m, grid.sums,
+                            np.zeros_like(grid.landable), grid.clearance_m, grid.votes, grid.seen * 0.5,
+                            grid.min_seen_weight)
+    lasting = with_landable(majority, np.zeros_like(grid.clearance_m))       # and no clear ground anywhere near
+    displaced = np.zeros_like(grid.landable)                                 # the patch shown 1 m to the east:
+    clear = np.zeros_like(grid.clearance_m)                                  # the scale moved it, it is kept
+    displaced[r - 6:r + 7, c + 2:c + 16], clear[r, c + 2] = True, 3.0
+    views = ([flicker] * 12 + [lasting] * 9 + [grid] + [lasting] * 4 + [remembered] * 2 + [lasting] * 5
+             + [with_landable(displaced, clear)] * 12)
+    for k, view in enumerate(views):
+        out, said = cont.step(Target.none(5 + k, 5.0 + k * 0.1, "no safe spot"), state, view, True)
+        assert out.valid and said == "", k
+    out, said = cont.step(Target.none(99, 9.5, "no safe spot"), state, lasting, True)  # the 10th fresh one in a row
+    assert not out.valid and said == "spot dropped: fresh evidence contradicts it" and cont.spot is None
+
+
 def test_clock_offset_follows_drift_and_drops_future_glitches():
     clock = ClockOffset(TelemetryConfig())
     local = None

@@ -7,8 +7,9 @@ ARCHITECTURE.md §4) and all hits lie within ``max_step_m`` of each other in hei
 
 The world (style, seed) comes from the log's first line, the ``{"run": {...}}`` header edge-run writes
 (``sim_style``, ``sim_seed``); ``--style``/``--seed`` override it, e.g. for an ``edge-sim --flight`` video
-replayed with its poses. A log that names no world and no flags is refused: judging against the wrong world
-gives a confident, wrong figure.
+replayed with its poses. A ``--camera sim-follow`` log's targets are in the autopilot's local NED: its home's
+place in the world (``sim.follow.place_home``) is added. A log that names no world and no flags is refused:
+judging against the wrong world gives a confident, wrong figure.
 
     edge-run --log /tmp/t.jsonl && python -m edge_landing.benchmarks.landing_truth /tmp/t.jsonl --clearance 2.0
 """
@@ -111,9 +112,15 @@ def evaluate(cfg: TruthConfig) -> dict:
     style, seed, source = world_of(cfg, header)
     targets = [r for r in records if r.get("valid") and r.get("ned_m")]
     world = sim.build_world(style, seed)
+    # sim-follow: targets are in the autopilot's local NED, whose origin (home) sim.follow placed in the world
+    offset = np.zeros(3)
+    if (header or {}).get("source_kind") == "sim-follow":
+        from edge_landing.sim.follow import place_home
+
+        offset = place_home(world)
     failures = []
     for r in targets:
-        ok, why = check_target(world, r["ned_m"][0], r["ned_m"][1], cfg)
+        ok, why = check_target(world, r["ned_m"][0] + offset[0], r["ned_m"][1] + offset[1], cfg)
         if not ok:
             failures.append({"frame": r["frame"], "ned_m": r["ned_m"], "why": why})
     safe = len(targets) - len(failures)

@@ -215,9 +215,9 @@ def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> Dict[str
     """The ``--log`` run record: what the frames are (sim world and seed, video, poses) and who consumed them."""
     style: Optional[str] = None
     seed: Optional[int] = None
-    if kind is SourceKind.SIM:
+    if kind in (SourceKind.SIM, SourceKind.SIM_FOLLOW):
         style, seed = "suburban", 0
-        for part in cfg.camera.split(":")[1:]:
+        for part in cfg.camera.partition("@")[0].split(":")[1:]:
             if part.isdigit():
                 seed = int(part)
             elif part:
@@ -254,7 +254,10 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
                        height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "")
     fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m)
     telemetry = TelemetryBuffer()
-    own_telemetry = src.kind is SourceKind.SIM or bool(cfg.poses)
+    # sim-follow renders the autopilot's pose: with --mav the link's telemetry is the drone's (as in flight),
+    # without it the frame's own pose is.
+    own_telemetry = (src.kind is SourceKind.SIM or bool(cfg.poses)
+                     or (src.kind is SourceKind.SIM_FOLLOW and not cfg.mav))
     link = None
     with contextlib.ExitStack() as stack:
         if cfg.mav:
@@ -270,7 +273,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
             stack.callback(link.stop)
             if not own_telemetry and cfg.telemetry_wait_s > 0:
                 wait_for_telemetry(telemetry, cfg.telemetry_wait_s, out)
-        grabber = Grabber(src, telemetry=telemetry).start()
+        grabber = Grabber(src, telemetry=telemetry if own_telemetry else None).start()
         stack.callback(grabber.stop)
         first = grabber.next(timeout_s=30.0)
         if first is None:
@@ -294,7 +297,8 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
         has_telemetry = bool(cfg.mav) or own_telemetry
         options = PipelineOptions(cfg.max_frames, cfg.duration_s, overlap=cfg.overlap,
                                   world_grid=cfg.grid is GridMode.NED,
-                                  continuity=ContinuityConfig(hold_s=cfg.hold_s))
+                                  continuity=ContinuityConfig(hold_s=cfg.hold_s,
+                                                               min_clearance_m=fusion_cfg.required_clearance_m))
         h, w = first.rgb.shape[:2]
         pipeline = Pipeline(grabber, inference, scale, fuser.fuse, telemetry if has_telemetry else None, link,
                             options, decision_log, recorder, out, FrameCheck(w, h))

@@ -40,15 +40,18 @@ class SourceKind(str, Enum):
     FOLDER = "folder"
     STREAM = "stream"
     SIM = "sim"
+    SIM_FOLLOW = "sim-follow"  # the synthetic camera that renders the autopilot's pose (edge_landing.sim.follow)
 
     @property
     def live(self) -> bool:
         """Live sources run at their own pace, so the grabber drops what the pipeline cannot take."""
-        return self in (SourceKind.DEVICE, SourceKind.STREAM, SourceKind.SIM)
+        return self in (SourceKind.DEVICE, SourceKind.STREAM, SourceKind.SIM, SourceKind.SIM_FOLLOW)
 
     @classmethod
     def from_string(cls, camera: str) -> SourceKind:
         """Guess the kind from what the user typed for ``--camera``."""
+        if camera == "sim-follow" or camera.startswith(("sim-follow:", "sim-follow@")):
+            return cls.SIM_FOLLOW
         if camera == "sim" or camera.startswith("sim:"):
             return cls.SIM
         if camera.isdigit() or camera.startswith("/dev/video"):
@@ -101,13 +104,15 @@ class Reader:
     """One opened input. ``read`` returns RGB uint8 H×W×3, or None at the end of a recorded input;
     it raises OSError when a live device fails (the grabber then reopens it). ``problem`` says why the last
     image is not to be trusted ('' when it is), ``intrinsics``/``mount`` are known by a synthetic camera,
-    ``last_state`` is the vehicle state of the last image when the source knows it (sim, pose replay)."""
+    ``last_state`` is the vehicle state of the last image when the source knows it (sim, pose replay),
+    ``capture_time_s`` the monotonic time the last image was taken when the source knows it (sim-follow)."""
 
     name = ""
     problem = ""
     intrinsics: Optional[Intrinsics] = None
     mount: Optional[Mount] = None
     last_state: Optional[VehicleState] = None
+    capture_time_s: Optional[float] = None  # time.monotonic() when the last image was taken, if the reader knows
 
     def read(self) -> Optional[np.ndarray]:
         raise NotImplementedError
@@ -213,6 +218,19 @@ class ImageFolderReader(Reader):
         return None
 
 
+def check_sim_extra(camera: str) -> None:
+    """Raise one MissingExtraError line when the ``[sim]`` extra is absent, before any work (worlds are built
+    lazily, so a missing ray caster would otherwise show up after the "building the world" line)."""
+    import importlib.util
+
+    from edge_landing.runtime.core.errors import MissingExtraError
+
+    for needed in ("trimesh", "embreex"):
+        if importlib.util.find_spec(needed) is None:
+            raise MissingExtraError(f"the {camera} camera needs '{needed}', which is not installed: "
+                                    "pip install 'edge-landing[sim]'")
+
+
 class SimReader(Reader):
     """The synthetic camera of the ``sim`` package (the ``[sim]`` extra), imported only when asked for.
 
@@ -227,14 +245,9 @@ class SimReader(Reader):
     DEFAULT_SIZE = (160, 120)  # renders at about 15 frames/s on one busy core
 
     def __init__(self, config: SourceConfig):
-        import importlib.util
+        from edge_landing.runtime.core.errors import require_extra
 
-        from edge_landing.runtime.core.errors import MissingExtraError, require_extra
-
-        for needed in ("trimesh", "embreex"):  # checked before any work: the world is built lazily
-            if importlib.util.find_spec(needed) is None:
-                raise MissingExtraError(f"the sim camera needs '{needed}', which is not installed: "
-                                        "pip install 'edge-landing[sim]'")
+        check_sim_extra("sim")
         sim = require_extra("edge_landing.sim", "sim")
         style, seed = "suburban", 0
         for part in config.camera.split(":")[1:]:
@@ -302,6 +315,8 @@ def open_reader(config: SourceConfig) -> Reader:
         reader: Reader = ImageFolderReader(config)
     elif config.kind is SourceKind.SIM:
         return SimReader(config)
+    elif config.kind is SourceKind.SIM_FOLLOW:
+        return open_follow_reader(config)
     else:
         reader = VideoReader(config)
     if config.poses_csv:
@@ -411,7 +426,9 @@ class Grabber:
             problem = reader.problem
             if problem:
                 log.warning("frame %d of %s is invalid: %s", self._next_id, self.config.camera, problem)
-            frame = Frame(self._next_id, time.monotonic(), rgb, self.config.camera, valid=not problem, reason=problem)
+            # A reader that knows when its image was taken (sim-follow: the pose's time) says so.
+            stamp_s = reader.capture_time_s if reader.capture_time_s is not None else time.monotonic()
+            frame = Frame(self._next_id, stamp_s, rgb, self.config.camera, valid=not problem, reason=problem)
             state = reader.last_state
             if state is not None and self.telemetry is not None:
                 self.telemetry.add_state(state, frame.capture_time_s)
@@ -447,3 +464,13 @@ class Grabber:
             self._slot = frame
             self.grabbed += 1
             self._cond.notify_all()
+
+
+def open_follow_reader(config: SourceConfig) -> Reader:
+    """``--camera sim-follow[:STYLE[:SEED]][@URL]``: renders the world from the autopilot's pose (``[sim]`` extra)."""
+    from edge_landing.runtime.core.errors import require_extra
+
+    check_sim_extra("sim-follow")
+    follow = require_extra("edge_landing.sim.follow", "sim")
+    reader: Reader = follow.FollowReader(config)
+    return reader

@@ -208,8 +208,10 @@ class Pipeline:
         s.times.add("total", time.perf_counter() - work.started_s)
         self.last_target = target
         if self.decision_log is not None:
+            spot = self.continuity.spot
             record = decision_record(target, pred, match.state, sent, why, self.scale.source,
-                                     level_assumed=self.telemetry is None)
+                                     level_assumed=self.telemetry is None,
+                                     committed_ned_m=None if spot is None else spot.ned_m)
             self.decision_log.write(json.dumps(record) + "\n")
 
     def _recheck(self, target: Target) -> Target:

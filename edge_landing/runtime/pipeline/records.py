@@ -26,9 +26,11 @@ def describe_target(target: Optional[Target]) -> str:
 
 
 def decision_record(target: Target, pred: Prediction, state: Optional[VehicleState], sent: bool, why: str,
-                    scale_source: str, level_assumed: bool = False) -> Dict[str, Any]:
+                    scale_source: str, level_assumed: bool = False, committed_ned_m: Optional[Any] = None
+                    ) -> Dict[str, Any]:
     """One ``--log`` line. ``sent`` is true only when the target really left the socket; ``not_sent_because``
-    says why not; ``level_assumed`` marks an offline run without telemetry (level flight assumed)."""
+    says why not; ``level_assumed`` marks an offline run without telemetry (level flight assumed);
+    ``committed_ned_m`` is the committed spot after this frame (local NED; None when there is none)."""
     def vec(v: Optional[Any]) -> Optional[List[float]]:
         return None if v is None else [round(float(x), 4) for x in v]
 
@@ -37,7 +39,8 @@ def decision_record(target: Target, pred: Prediction, state: Optional[VehicleSta
             "ned_m": vec(target.position_ned_m), "range_m": _num(target.range_m), "clearance_m": _num(target.clearance_m),
             "confidence": _num(target.confidence), "scale": _num(pred.scale), "scale_source": scale_source,
             "telemetry": state is not None, "agl_m": None if state is None else state.agl_m,
-            "level_assumed": level_assumed, "sent": sent, "not_sent_because": "" if sent else why}
+            "level_assumed": level_assumed, "sent": sent, "not_sent_because": "" if sent else why,
+            "committed_ned_m": vec(committed_ned_m)}
 
 
 def _num(v: Optional[float]) -> Optional[float]:
