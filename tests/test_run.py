@@ -33,7 +33,7 @@ def assets(tmp_path_factory):
 def test_video_run_logs_every_decision_records_overlay_and_prints_summary(assets, tmp_path, capsys):
     log_path, rec = tmp_path / "targets.jsonl", tmp_path / "overlay.mp4"
     assert main(["--camera", assets["video"], "--model", assets["model"], "--log", str(log_path),
-                 "--record", str(rec), "--vehicle-radius", "0.5", "--margin", "0.5"]) == 0
+                 "--record", str(rec), "--vehicle-radius", "0.5", "--margin", "0.5", "--allow-unconfirmed"]) == 0
     out = capsys.readouterr().out
     assert "pipeline images/s" in out and "model-only images/s" in out and "stopped by end of input" in out
     decisions = read_decisions(log_path)
@@ -52,7 +52,7 @@ def test_max_frames_and_calibration_scale(assets, tmp_path):
     cal_path = cal.save(tmp_path / "edge_landing.calibration.json")
     log_path = tmp_path / "t.jsonl"
     assert main(["--camera", assets["video"], "--model", str(model), "--calibration", str(cal_path),
-                 "--max-frames", "4", "--log", str(log_path)]) == 0
+                 "--max-frames", "4", "--log", str(log_path), "--allow-unconfirmed"]) == 0
     decisions = read_decisions(log_path)
     assert len(decisions) == 4
     assert all(d["scale"] == 2.0 and d["scale_source"] == "calibration" for d in decisions)
@@ -143,7 +143,7 @@ def test_poses_replay_gives_ned_targets_for_a_recorded_flight(assets, tmp_path):
     poses.write_text("\n".join(rows) + "\n")
     log_path = tmp_path / "t.jsonl"
     assert main(["--camera", assets["video"], "--model", assets["model"], "--poses", str(poses),
-                 "--vehicle-radius", "0.5", "--margin", "0.5", "--log", str(log_path)]) == 0
+                 "--vehicle-radius", "0.5", "--margin", "0.5", "--log", str(log_path), "--allow-unconfirmed"]) == 0
     decisions = read_decisions(log_path)
     assert len(decisions) == 10 and all(d["valid"] for d in decisions)
     for d in decisions:

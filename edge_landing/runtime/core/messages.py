@@ -69,6 +69,16 @@ class Target:
     clearance_m: float = float("nan")
     confidence: float = 0.0
     timings_s: dict[str, float] = field(default_factory=dict)
+    # What made this spot trustworthy (ARCHITECTURE.md §11): "geometry+network" when the drone's own motion
+    # confirmed it, "network only" when that was allowed without confirmation; the geometry figures of the
+    # spot's cell (NaN without): baseline of the confirming frame pair, smallest obstacle height it could
+    # detect, seconds since it was confirmed. ``tracked_ned_m``: on a target that is not sent, the spot the
+    # network proposes and geometry has not confirmed (for overlays and logs only, never for the autopilot).
+    evidence: str = ""
+    geometry_baseline_m: float = float("nan")
+    geometry_detectable_m: float = float("nan")
+    geometry_age_s: float = float("nan")
+    tracked_ned_m: Optional[np.ndarray] = None
 
     @staticmethod
     def none(frame_id: int, capture_time_s: float, reason: str, timings_s: Optional[dict[str, float]] = None) -> Target:

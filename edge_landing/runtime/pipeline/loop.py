@@ -162,7 +162,7 @@ class Pipeline:
         if state is not None and not self.options.world_grid:
             fusion_state = replace(state, position_ned_m=None)
         try:
-            result = self.fuse(pred, fusion_state, time.monotonic())
+            result = self.fuse(pred, fusion_state, time.monotonic(), frame.rgb)  # image: motion geometry
         except Exception as exc:  # a fusion bug must not stop the drone's loop: no target, and why
             log.exception("fusion failed on frame %d", frame.frame_id)
             result = FusionResult(Target.none(frame.frame_id, frame.capture_time_s, f"fusion fault: {exc}"))

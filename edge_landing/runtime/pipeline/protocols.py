@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Dict, Optional, Protocol, Tuple
 
+import numpy as np
+
 from edge_landing.runtime.core.messages import Frame, Prediction, Target, VehicleState
 from edge_landing.runtime.fusion.grid import GridView
 from edge_landing.runtime.fusion.result import FusionResult
@@ -66,7 +68,8 @@ class Inference(Protocol):
 
 
 class Fuse(Protocol):
-    def __call__(self, pred: Prediction, state: Optional[VehicleState], now_s: float) -> FusionResult: ...
+    def __call__(self, pred: Prediction, state: Optional[VehicleState], now_s: float,
+                 image: Optional[np.ndarray] = None) -> FusionResult: ...
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,406 @@
+"""Motion geometry: heights above the ground from the drone's own motion, independent of the network (ARCHITECTURE.md §11).
+
+Between the current frame (c) and an earlier one (r) with known poses, points of the ground plane map by the
+plane-induced homography; a point ``h`` above the plane is displaced from that prediction along the
+epipolar direction. Frames: camera = OpenCV (x right, y down, z forward), world = local NED.
+
+Derivation (normalised image coordinates, camera c = "1", camera r = "2"):
+  X_r = R X_c + t with R = R_r^T R_c, t = R_r^T (p_c - p_r) (R_x: NED <- camera, p_x: camera position).
+  Ground plane in camera c: n^T X = d, n = R_c^T (0, 0, 1) (world down in camera c), d = height above it.
+  A point at height h above the plane: n^T X_c = d - h. With H_e = R + t n^T / d:
+      X_r = H_e X_c + t h / d.
+  Writing X_c = λ x_c (x_c = (x, y, 1), λ = (d - h) / n^T x_c) and Z0 = the reference-frame depth of the
+  *plane* point on the same ray (h = 0), the projections differ exactly by
+      x_r - π(H_e x_c) = h / (d - h) · (t_xy - x_r t_z) / Z0 = s · g,
+  so s = r·g / |g|² and h = d s / (1 + s). ``g`` is the parallax a point would show per unit of h/(d-h):
+  |g| ≈ |t⊥| / Z0, the baseline across the line of sight over the range. With flow noise σ pixels
+  (σ_n = σ / f normalised), h has σ_h ≈ d σ_n / |g| near the ground, and the smallest height this pair
+  could have detected is ``detect_sigmas`` · σ_h.
+
+Flow: the reference image is first warped by the plane homography into the current view, so the flow
+DIS has to find is only the residual parallax (small for the ground even with tens of metres of
+baseline). The height of the ground itself is the terrain (slopes of a few degrees read as metres at
+100 m): a smooth quadratic surface is fitted robustly to the heights and removed, so ``h`` is the height
+above the *local* ground. Pure numpy/OpenCV, no I/O; memory is bounded in time (``history_s``) and count.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Deque, Optional
+
+import cv2
+import numpy as np
+
+from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount, ned_from_camera
+from edge_landing.runtime.core.choices import ChoiceEnum
+from edge_landing.runtime.core.errors import InputError
+
+
+class DisPreset(ChoiceEnum):
+    ULTRAFAST = "ultrafast"
+    FAST = "fast"
+    MEDIUM = "medium"
+
+    @classmethod
+    def _label(cls) -> str:
+        return "DIS optical flow preset"
+
+    def create(self) -> cv2.DISOpticalFlow:
+        preset = {DisPreset.ULTRAFAST: cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+                  DisPreset.FAST: cv2.DISOPTICAL_FLOW_PRESET_FAST,
+                  DisPreset.MEDIUM: cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}[self]
+        return cv2.DISOpticalFlow.create(preset)
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Motion-geometry settings. Pixels at ``working_hw``, lengths in metres, times in seconds."""
+
+    working_hw: tuple[int, int] = (240, 320)  # (height, width) the grey frames are resized to
+    history_s: float = 4.0               # reference frames older than this are dropped
+    max_frames: int = 40                 # and at most this many are kept (frames are thinned to fit)
+    flow_noise_px: float = 0.4           # 1-σ error of the residual flow (DIS on the pre-warped pair)
+    detect_sigmas: float = 3.0           # a height is detectable at this many σ
+    dis_preset: DisPreset = DisPreset.FAST
+    dis_refine_iterations: int = 5       # variational refinement (the fast preset's 1 leaves a ~0.1 px bias)
+    dis_finest_scale: int = 2            # pyramid level DIS stops at; 2 (quarter size) halves
+                                         # a car-sized parallax (2 m box at 57 m reads 0.7 m), 1 reads 1.1 m
+                                         # but costs ~40 ms per frame: open problem (issue #13)
+    max_range_m: float = 50.0            # ground farther than this (horizontally) from the vehicle is skipped
+    min_overlap: float = 0.5             # share of probe points the reference frame must see
+    max_photometric_error: float = 24.0  # grey levels: larger residual after flow = no evidence (occlusion)
+    max_cross_parallax_px: float = 1.5   # residual across the epipolar direction beyond this = no evidence
+    max_sigma_h_m: float = 1.0           # pixels noisier than this are left out of the terrain fit
+    min_agl_m: float = 2.0               # below this the plane model is not used
+
+    def __post_init__(self) -> None:
+        h, w = self.working_hw
+        if h < 32 or w < 32:
+            raise InputError(f"motion working size must be at least 32x32 pixels, got {h}x{w}")
+        for name in ("history_s", "flow_noise_px", "detect_sigmas", "max_range_m", "max_photometric_error",
+                     "max_cross_parallax_px", "max_sigma_h_m", "min_agl_m"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"motion {name} must be > 0, got {getattr(self, name)}")
+        if self.max_frames < 2:
+            raise InputError(f"motion max_frames must be at least 2, got {self.max_frames}")
+        if not 0 < self.min_overlap <= 1:
+            raise InputError(f"motion min_overlap must be in (0, 1], got {self.min_overlap}")
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    """Camera pose at capture: NED <- camera rotation, camera position (NED, m), height above the ground (m)."""
+
+    r_nc: np.ndarray
+    position_ned_m: np.ndarray
+    agl_m: float
+
+    @staticmethod
+    def of(mount: Mount, attitude: Attitude, position_ned_m: np.ndarray, agl_m: float) -> CameraPose:
+        return CameraPose(ned_from_camera(mount, attitude), np.asarray(position_ned_m, np.float64).reshape(3),
+                          float(agl_m))
+
+
+@dataclass(frozen=True)
+class _Stored:
+    time_s: float
+    grey: np.ndarray
+    pose: CameraPose
+
+
+@dataclass(frozen=True)
+class ParallaxResult:
+    """Per-pixel evidence of one frame pair at the motion working size (rows ``row0`` and below).
+
+    ``height_m``: height above the local ground (NaN where there is no evidence); ``detectable_m``: the
+    smallest height this pair could have detected at that pixel (inf where no evidence); ``ned_m``: the
+    pixel's point in local NED (3×H×W, at its measured height). ``baseline_m``: distance between the two
+    camera centres; ``reference_age_s``: how old the reference frame was.
+    """
+
+    time_s: float
+    row0: int
+    height_m: np.ndarray
+    sigma_m: np.ndarray
+    detectable_m: np.ndarray
+    ned_m: np.ndarray
+    baseline_m: float
+    reference_age_s: float
+    ground_fit: np.ndarray           # quadratic terrain coefficients (1, n, e, n², ne, e²), n/e in 100 m
+
+
+def plane_homography(k: np.ndarray, cur: CameraPose, ref: CameraPose) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                               np.ndarray, float]:
+    """(H pixel c -> r, R, t, n, d): the ground plane's homography between current and reference frames.
+
+    ``k`` is the 3×3 intrinsic matrix in OpenCV's pixel-centre convention. The plane is horizontal at
+    the current frame's height above ground below the current camera.
+    """
+    rot = ref.r_nc.T @ cur.r_nc
+    t = ref.r_nc.T @ (cur.position_ned_m - ref.position_ned_m)
+    n = cur.r_nc.T @ np.array([0.0, 0.0, 1.0])
+    d = cur.agl_m
+    h_norm = rot + np.outer(t, n) / d
+    return k @ h_norm @ np.linalg.inv(k), rot, t, n, d
+
+
+def parallax_height(x_c: np.ndarray, x_r: np.ndarray, rot: np.ndarray, t: np.ndarray, n: np.ndarray, d: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Heights above the plane from matched normalised points (2×N each): (h, |g|, cross-epipolar residual).
+
+    ``x_r`` is where the current frame's point ``x_c`` was found in the reference frame. See the module
+    docstring for the derivation: r = x_r - π(H_e x_c) = s·g, h = d·s/(1+s).
+    """
+    xh = np.vstack([x_c, np.ones((1, x_c.shape[1]), x_c.dtype)])
+    nx = n @ xh                                               # > 0: the ray meets the plane ahead
+    q = (rot + np.outer(t, n) / d) @ xh                       # H_e x_c (homogeneous, reference frame)
+    pred = q[:2] / q[2]
+    z0 = d / nx * q[2]                                        # reference depth of the plane point on this ray
+    g = (t[:2, None] - x_r * t[2]) / z0
+    g2 = np.einsum("ij,ij->j", g, g)
+    r = x_r - pred
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = np.einsum("ij,ij->j", r, g) / g2
+        cross = np.abs(r[0] * g[1] - r[1] * g[0]) / np.sqrt(g2)
+        h = d * s / (1.0 + s)
+    bad = ~(nx > 0) | ~(z0 > 0) | ~(g2 > 0)
+    h[bad] = np.nan
+    return h, np.sqrt(np.where(bad, 0.0, g2)), cross
+
+
+class MotionStage:
+    """Keeps a short history of grey frames with poses; ``update`` measures heights against the best one."""
+
+    def __init__(self, config: MotionConfig, intrinsics: Intrinsics, mount: Mount):
+        self.config = config
+        self.mount = mount
+        h, w = config.working_hw
+        self.intrinsics = intrinsics.scaled(w, h)
+        i = self.intrinsics
+        # OpenCV's warps and flows put pixel centres at integers; the runtime's rays at +0.5.
+        self.k_cv = np.array([[i.fx, 0.0, i.cx - 0.5], [0.0, i.fy, i.cy - 0.5], [0.0, 0.0, 1.0]])
+        self._undistort = None
+        if i.dist:   # the plane model is pinhole: undistort frames once into the same camera without distortion
+            self._undistort = cv2.initUndistortRectifyMap(self.k_cv, np.asarray(i.dist, np.float64), None,
+                                                          self.k_cv, (w, h), cv2.CV_16SC2)
+        self._history: Deque[_Stored] = deque()
+        self._dis = config.dis_preset.create()
+        self._dis.setVariationalRefinementIterations(config.dis_refine_iterations)
+        self._dis.setFinestScale(config.dis_finest_scale)
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        self._pix = (xx, yy)
+        self._norm = ((xx - self.k_cv[0, 2]) / i.fx, (yy - self.k_cv[1, 2]) / i.fy)
+        self.last: Optional[ParallaxResult] = None
+        self.last_reason = ""
+
+    def reset(self) -> None:
+        self._history.clear()
+        self.last, self.last_reason = None, ""
+
+    def grey(self, image: np.ndarray) -> np.ndarray:
+        """RGB (or grey) uint8 image at any size -> grey uint8 at the working size, undistorted."""
+        g = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        h, w = self.config.working_hw
+        if g.shape != (h, w):
+            g = cv2.resize(g, (w, h), interpolation=cv2.INTER_AREA)
+        if g.dtype != np.uint8:
+            g = np.clip(g, 0, 255).astype(np.uint8)
+        if self._undistort is not None:
+            g = cv2.remap(g, self._undistort[0], self._undistort[1], cv2.INTER_LINEAR)
+        return g
+
+    def update(self, image: np.ndarray, pose: CameraPose, time_s: float) -> Optional[ParallaxResult]:
+        """Add a frame; returns its height evidence, or None (``last_reason`` says why)."""
+        cfg = self.config
+        self.last = None
+        if not (math.isfinite(pose.agl_m) and pose.agl_m >= cfg.min_agl_m):
+            self.last_reason = f"height above ground {pose.agl_m} m unusable (need >= {cfg.min_agl_m} m)"
+            return None
+        grey = self.grey(image)
+        while self._history and (time_s - self._history[0].time_s > cfg.history_s
+                                 or self._history[0].time_s >= time_s):
+            self._history.popleft()
+        result = None
+        ref = self._pick_reference(pose, time_s)
+        if ref is None:
+            self.last_reason = self.last_reason or "no reference frame"
+        else:
+            result = self._measure(grey, pose, ref, time_s)
+        self._store(_Stored(time_s, grey, pose))
+        self.last = result
+        return result
+
+    def _store(self, item: _Stored) -> None:
+        h = self._history
+        # Thin to the count bound: keep frames at least history_s / max_frames apart.
+        if h and item.time_s - h[-1].time_s < self.config.history_s / self.config.max_frames and len(h) > 1 \
+                and item.time_s - h[-2].time_s < 2 * self.config.history_s / self.config.max_frames:
+            h.pop()
+        h.append(item)
+        while len(h) > self.config.max_frames:
+            h.popleft()
+
+    def _ground_rows(self, pose: CameraPose) -> tuple[int, np.ndarray]:
+        """First row whose ground point lies within max_range_m, and probe pixels (2×K) in the ground band."""
+        h, w = self.config.working_hw
+        n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
+        # Rows get nearer going down (camera below the horizon): test every row at five columns at once.
+        xs = self._norm[0][0][np.linspace(0, w - 1, 5).astype(int)][None, :]
+        ys = self._norm[1][:, :1]
+        nx = n[0] * xs + n[1] * ys + n[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = np.where(nx > 0, pose.agl_m / nx, np.nan)
+        r = pose.r_nc
+        pn = (r[0, 0] * xs + r[0, 1] * ys + r[0, 2]) * lam
+        pe = (r[1, 0] * xs + r[1, 1] * ys + r[1, 2]) * lam
+        with np.errstate(invalid="ignore"):
+            rows = np.flatnonzero(np.any(np.hypot(pn, pe) <= self.config.max_range_m, axis=1))
+        row0 = int(rows[0]) if rows.size else h
+        us = np.linspace(0.1 * w, 0.9 * w, 5)
+        vs = np.linspace(row0 + 0.1 * (h - row0), h - 1, 4)
+        uu, vv = np.meshgrid(us, vs)
+        return row0, np.vstack([uu.ravel(), vv.ravel()])
+
+    def _pick_reference(self, pose: CameraPose, time_s: float) -> Optional[_Stored]:
+        """The most recent frame that can detect obstacle-size heights with margin, else the most sensitive one.
+
+        All stored frames are scored at once at a few probe pixels of the ground band: the smallest height
+        they could detect there (median over the probes the reference frame still sees).
+        """
+        if not self._history:
+            self.last_reason = "no earlier frame yet"
+            return None
+        cfg = self.config
+        h, w = cfg.working_hw
+        _, probes = self._ground_rows(pose)
+        k_inv = np.linalg.inv(self.k_cv)
+        xc = (k_inv @ np.vstack([probes, np.ones(probes.shape[1])]))
+        items = list(self._history)
+        r_ref = np.stack([it.pose.r_nc for it in items])                        # M×3×3 NED <- ref camera
+        p_ref = np.stack([it.pose.position_ned_m for it in items])              # M×3
+        rot = np.einsum("mji,jk->mik", r_ref, pose.r_nc)                        # R_r^T R_c
+        t = np.einsum("mji,mj->mi", r_ref, pose.position_ned_m[None] - p_ref)   # R_r^T (p_c - p_r)
+        n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
+        d = pose.agl_m
+        q = np.einsum("mij,jk->mik", rot + t[:, :, None] * n[None, None, :] / d, xc)   # M×3×K, H_e x_c
+        nx = n @ xc                                                             # K
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xr = q[:, :2] / q[:, 2:3]
+            ur = self.k_cv[0, 0] * xr[:, 0] + self.k_cv[0, 2]
+            vr = self.k_cv[1, 1] * xr[:, 1] + self.k_cv[1, 2]
+            inside = (q[:, 2] > 0) & (nx > 0)[None] & (ur >= 8) & (ur <= w - 9) & (vr >= 8) & (vr <= h - 9)
+            z0 = d / nx[None] * q[:, 2]
+            g = (t[:, :2, None] - xr * t[:, 2:3, None]) / z0[:, None]
+            gnorm = np.where(inside, np.hypot(g[:, 0], g[:, 1]), np.nan)
+            f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
+            det = cfg.detect_sigmas * d * (cfg.flow_noise_px / f) / np.nanmedian(
+                np.where(inside.any(axis=1, keepdims=True), gnorm, 0.0), axis=1)
+        det = np.where((inside.mean(axis=1) >= cfg.min_overlap) & np.isfinite(det), det, np.inf)
+        if not np.isfinite(det).any():
+            self.last_reason = "no earlier frame overlaps the current view"
+            return None
+        # A longer baseline than needed only adds occlusion and resampling blur: the newest frame that
+        # detects a quarter of a metre, else the most sensitive one.
+        enough = np.flatnonzero(det <= 0.25)
+        return items[int(enough[-1])] if enough.size else items[int(np.argmin(det))]
+
+    def _measure(self, grey: np.ndarray, pose: CameraPose, ref: _Stored, time_s: float) -> ParallaxResult:
+        cfg = self.config
+        h, w = cfg.working_hw
+        hom, rot, t, n, d = plane_homography(self.k_cv, pose, ref.pose)
+        row0, _ = self._ground_rows(pose)
+        row0 = max(0, row0 - 8)                              # DIS patches need a little context
+        warped = cv2.warpPerspective(ref.grey, hom, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                     borderMode=cv2.BORDER_REPLICATE)
+        cur, wrp = grey[row0:], warped[row0:]
+        flow = np.asarray(self._dis.calc(cur, wrp, None))  # type: ignore[call-overload]
+        xx, yy = self._pix[0][row0:], self._pix[1][row0:]
+        mx, my = xx + flow[..., 0], yy + flow[..., 1]
+        matched = cv2.remap(wrp, mx, my - row0, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        photo = np.abs(cur.astype(np.int16) - matched.astype(np.int16))
+        # Where the matched point lies in the reference image (pixel-centre convention), then normalised.
+        qx = hom[0, 0] * mx + hom[0, 1] * my + hom[0, 2]
+        qy = hom[1, 0] * mx + hom[1, 1] * my + hom[1, 2]
+        qz = hom[2, 0] * mx + hom[2, 1] * my + hom[2, 2]
+        ur, vr = qx / qz, qy / qz
+        in_ref = (qz > 0) & (ur >= 0) & (ur <= w - 1) & (vr >= 0) & (vr <= h - 1)
+        k_inv = np.linalg.inv(self.k_cv)
+        xr = np.stack([(ur - self.k_cv[0, 2]) * k_inv[0, 0], (vr - self.k_cv[1, 2]) * k_inv[1, 1]]).reshape(2, -1)
+        xc = np.stack([self._norm[0][row0:], self._norm[1][row0:]]).reshape(2, -1)
+        hgt, gnorm, cross = parallax_height(xc.astype(np.float64), xr.astype(np.float64), rot, t, n, d)
+        f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
+        sigma_n = cfg.flow_noise_px / f
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sigma0 = d * sigma_n / gnorm
+        shape = cur.shape
+        hgt, sigma0, cross = hgt.reshape(shape), sigma0.reshape(shape), cross.reshape(shape)
+        # NED point of each pixel at its measured height (the plane point where there is no height).
+        lam_scale = np.where(np.isfinite(hgt), np.clip(1.0 - hgt / d, 0.05, 1.0), 1.0)
+        ned, nx = self._ned_points(pose, xc, lam_scale.reshape(-1))
+        ned = ned.reshape((3,) + shape)
+        near = (nx.reshape(shape) > 0) & (np.hypot(ned[0] - pose.position_ned_m[0],
+                                                   ned[1] - pose.position_ned_m[1]) <= cfg.max_range_m)
+        reliable = near & in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error) \
+            & (cross * f <= max(cfg.max_cross_parallax_px, 3 * cfg.flow_noise_px))
+        fit = _fit_ground(ned, hgt, sigma0, reliable & (sigma0 <= cfg.max_sigma_h_m), pose.position_ned_m)
+        local = hgt - _ground_surface(fit, ned, pose.position_ned_m)
+        height = np.where(reliable, local, np.nan).astype(np.float32)
+        detectable = np.where(reliable, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
+        out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
+        baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))
+        self.last_reason = ""
+        return ParallaxResult(time_s, row0, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
+                              time_s - ref.time_s, fit)
+
+    def _ned_points(self, pose: CameraPose, xc: np.ndarray, lam_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
+        nx = n[0] * xc[0] + n[1] * xc[1] + n[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = np.where(nx > 0, pose.agl_m / nx, np.nan) * lam_scale
+        r = pose.r_nc
+        pts = np.empty((3, xc.shape[1]), np.float64)
+        for i in range(3):
+            pts[i] = (r[i, 0] * xc[0] + r[i, 1] * xc[1] + r[i, 2]) * lam + pose.position_ned_m[i]
+        return pts, nx
+
+
+def _design(dn: np.ndarray, de: np.ndarray) -> np.ndarray:
+    return np.stack([np.ones_like(dn), dn, de, dn * dn, dn * de, de * de], axis=-1)
+
+
+def _fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndarray, here: np.ndarray,
+                max_points: int = 3000) -> np.ndarray:
+    """Robust quadratic surface through the ground's heights (coefficients in 100 m units).
+
+    Starts from the 30th percentile (most pixels within the range are ground; buildings and trees sit
+    above it) and trims to shrinking windows, so obstacles do not lift the surface.
+    """
+    coef = np.zeros(6)
+    idx = np.flatnonzero(use.reshape(-1))
+    if idx.size < 30:
+        return coef
+    if idx.size > max_points:
+        idx = idx[:: idx.size // max_points + 1]
+    h = hgt.reshape(-1)[idx]
+    dn = (ned[0].reshape(-1)[idx] - here[0]) / 100.0
+    de = (ned[1].reshape(-1)[idx] - here[1]) / 100.0
+    a = _design(dn, de)
+    coef[0] = float(np.percentile(h, 30))
+    for window in (3.0, 1.5, 0.6):
+        res = h - a @ coef
+        inl = np.abs(res) <= window
+        if inl.sum() < 30:
+            break
+        sol, *_ = np.linalg.lstsq(a[inl], h[inl], rcond=None)
+        coef = sol
+    return coef
+
+
+def _ground_surface(coef: np.ndarray, ned: np.ndarray, here: np.ndarray) -> np.ndarray:
+    dn = (ned[0] - here[0]) / 100.0
+    de = (ned[1] - here[1]) / 100.0
+    out: np.ndarray = coef[0] + coef[1] * dn + coef[2] * de + coef[3] * dn * dn + coef[4] * dn * de \
+        + coef[5] * de * de
+    return out
