@@ -57,9 +57,9 @@ from edge_landing.runtime.fusion.grid import (
     splat_samples,
 )
 from edge_landing.runtime.fusion.landing import Choice, KeptSpot, choose_spot
-from edge_landing.runtime.fusion.result import FusionResult
 from edge_landing.runtime.fusion.motion import CameraPose, MotionConfig, MotionStage
 from edge_landing.runtime.fusion.motion_grid import GeometryGrid, GeometryView
+from edge_landing.runtime.fusion.result import FusionResult
 
 log = logging.getLogger(__name__)
 DEGRADED_NO_HVO = "degraded: depth only (no HVO head), confidence lowered"
@@ -351,7 +351,7 @@ class LandingFuser:
                 self._geo_note = ""
             else:
                 self._geo_note = f"no new geometry ({self.motion.last_reason})"
-        return self._geo_grid.view(view.north0_m, view.east0_m, view.shape, t_cap)
+        return self._geo_grid.view(view.north0_m, view.east0_m, (int(view.shape[0]), int(view.shape[1])), t_cap)
 
     def _confirmed_view(self, view: GridView, geo: GeometryView) -> GridView:
         landable = view.landable & geo.clear
@@ -439,7 +439,6 @@ class LandingFuser:
         return self._grid.add(samples[0], samples[1], samples[2], np.take(hor_px, pix), np.take(flat_px, pix), offset)
 
     def _make_target(self, pred: Prediction, choice: Choice, attitude: Attitude, r_nc: np.ndarray,
-    def _make_target(self, pred: Prediction, choice: Choice, attitude: Attitude, r_nc: np.ndarray,
                      position: Optional[np.ndarray], have_hvo: bool, timings: dict[str, float],
                      evidence: str = "") -> Target:
         cfg = self.config
@@ -456,6 +455,7 @@ class LandingFuser:
         confidence = (clear_used / cfg.clearance_saturation_m) * choice.flat_share
         confidence *= choice.horizontal_share if have_hvo else cfg.depth_only_confidence
         values = [*body, *cam, rng, size_x, size_y, choice.clearance_m, confidence]
+        base, det, age = self._geometry_figures(choice)
         if not all(math.isfinite(float(v)) for v in values) or rng <= 0:
             self._kept = None
             return Target.none(pred.frame_id, pred.capture_time_s, "no target: non-finite output", timings)
@@ -468,13 +468,12 @@ class LandingFuser:
             range_m=rng, angle_x_rad=math.atan2(cam[0], cam[2]), angle_y_rad=math.atan2(cam[1], cam[2]),
             size_x_rad=size_x, size_y_rad=size_y, clearance_m=float(choice.clearance_m),
             confidence=float(min(max(confidence, 0.0), 1.0)), timings_s=timings, evidence=evidence,
-            **self._geometry_figures(choice))
+            geometry_baseline_m=base, geometry_detectable_m=det, geometry_age_s=age)
 
-    def _geometry_figures(self, choice: Choice) -> dict[str, float]:
+    def _geometry_figures(self, choice: Choice) -> tuple[float, float, float]:
+        """(baseline, detectable height, age of confirmation) of the spot's geometry cell (NaN without)."""
         geo, view = self._geo, self._view
         cell = None if geo is None or view is None else view.cell_of(choice.north_m, choice.east_m)
         if cell is None or geo is None:
-            return {}
-        return {"geometry_baseline_m": float(geo.baseline_m[cell]),
-                "geometry_detectable_m": float(geo.detectable_m[cell]),
-                "geometry_age_s": float(geo.clear_age_s[cell])}
+            return math.nan, math.nan, math.nan
+        return float(geo.baseline_m[cell]), float(geo.detectable_m[cell]), float(geo.clear_age_s[cell])
