@@ -291,7 +291,8 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
         has_telemetry = bool(cfg.mav) or own_telemetry
         options = PipelineOptions(cfg.max_frames, cfg.duration_s, overlap=cfg.overlap,
                                   world_grid=cfg.grid is GridMode.NED,
-                                  continuity=ContinuityConfig(hold_s=cfg.hold_s))
+                                  continuity=ContinuityConfig(hold_s=cfg.hold_s,
+                                                                commit_unconfirmed=cfg.allow_unconfirmed))
         h, w = first.rgb.shape[:2]
         pipeline = Pipeline(grabber, inference, scale, fuser.fuse, telemetry if has_telemetry else None, link,
                             options, decision_log, recorder, out, FrameCheck(w, h))

@@ -12,6 +12,10 @@ import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude
 
+# Target.evidence prefixes (ARCHITECTURE.md §11).
+EVIDENCE_GEOMETRY = "geometry+network"
+EVIDENCE_NETWORK_ONLY = "network only"
+
 
 @dataclass(frozen=True)
 class Frame:
@@ -79,6 +83,11 @@ class Target:
     geometry_detectable_m: float = float("nan")
     geometry_age_s: float = float("nan")
     tracked_ned_m: Optional[np.ndarray] = None
+
+    @property
+    def geometry_confirmed(self) -> bool:
+        """True when the drone's own motion confirmed this spot (only such spots may be committed, §12)."""
+        return self.valid and self.evidence.startswith(EVIDENCE_GEOMETRY)
 
     @staticmethod
     def none(frame_id: int, capture_time_s: float, reason: str, timings_s: Optional[dict[str, float]] = None) -> Target:

@@ -48,7 +48,13 @@ from edge_landing.runtime.core.camera import (
     ned_from_camera,
 )
 from edge_landing.runtime.core.errors import InputError
-from edge_landing.runtime.core.messages import Prediction, Target, VehicleState
+from edge_landing.runtime.core.messages import (
+    EVIDENCE_GEOMETRY,
+    EVIDENCE_NETWORK_ONLY,
+    Prediction,
+    Target,
+    VehicleState,
+)
 from edge_landing.runtime.fusion.grid import (
     CellRules,
     GridView,
@@ -304,10 +310,11 @@ class LandingFuser:
             kept = getattr(self, name)
             if kept is not None and t_cap - kept.time_s > cfg.keep_target_s:
                 setattr(self, name, None)
-        t_geo = time.perf_counter()
-        self._geo = self._geometry(image, state, position, t_cap)
-        timings["geometry"] = time.perf_counter() - t_geo
         proposal = choose_spot(self._view, here, cfg, self._tracked)
+        focus = None if proposal is None else np.array([proposal.north_m, proposal.east_m, proposal.down_m])
+        t_geo = time.perf_counter()
+        self._geo = self._geometry(image, state, position, t_cap, focus)
+        timings["geometry"] = time.perf_counter() - t_geo
         if proposal is None:
             self._kept = self._tracked = None
             best = float(self._view.clearance_m.max())
@@ -323,18 +330,19 @@ class LandingFuser:
         why = self._unconfirmed_reason(proposal, position)
         if cfg.allow_unconfirmed:
             target = self._make_target(pred, proposal, attitude, r_nc, position, hvo_h is not None, timings,
-                                       f"network only ({why})")
+                                       f"{EVIDENCE_NETWORK_ONLY} ({why})")
             self._kept = None              # an unconfirmed spot never becomes the committed one
             return target
         target = none(why)
         point = np.array([proposal.north_m, proposal.east_m, proposal.down_m])
-        return replace(target, tracked_ned_m=point if position is not None else None, evidence="network only")
+        return replace(target, tracked_ned_m=point if position is not None else None, evidence=EVIDENCE_NETWORK_ONLY)
 
     # -- geometry ---------------------------------------------------------------------------------------
 
     def _geometry(self, image: Optional[np.ndarray], state: Optional[VehicleState], position: Optional[np.ndarray],
-                  t_cap: float) -> Optional[GeometryView]:
-        """Run the motion stage on this frame and return the evidence aligned with the fusion grid (or None)."""
+                  t_cap: float, focus: Optional[np.ndarray]) -> Optional[GeometryView]:
+        """Run the motion stage on this frame (its window centred on the network's candidate ``focus``, NED)
+        and return the evidence aligned with the fusion grid (or None)."""
         view = self._view
         if view is None or position is None:
             self._geo_note = "no vehicle position (geometry needs telemetry poses)"
@@ -345,7 +353,7 @@ class LandingFuser:
             self._geo_note = "no camera image for geometry" if image is None else "no height above ground"
         else:
             pose = CameraPose.of(self.mount, state.attitude if state else Attitude(), position, float(agl))
-            result = self.motion.update(np.asarray(image), pose, t_cap)
+            result = self.motion.update(np.asarray(image), pose, t_cap, focus)
             if result is not None:
                 self._geo_grid.add(result)
                 self._geo_note = ""
@@ -358,7 +366,7 @@ class LandingFuser:
         return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
 
     def _evidence(self, choice: Choice) -> str:
-        return "geometry+network" if not self._geo_note else f"geometry+network; {self._geo_note}"
+        return EVIDENCE_GEOMETRY if not self._geo_note else f"{EVIDENCE_GEOMETRY}; {self._geo_note}"
 
     def _unconfirmed_reason(self, proposal: Choice, position: Optional[np.ndarray]) -> str:
         """Why the network's spot is not sent: what geometry knows about its cell."""

@@ -56,31 +56,35 @@ class DisPreset(ChoiceEnum):
 
 @dataclass(frozen=True)
 class MotionConfig:
-    """Motion-geometry settings. Pixels at ``working_hw``, lengths in metres, times in seconds."""
+    """Motion-geometry settings. Pixels at the frame's own size (up to ``max_width_px``), metres, seconds."""
 
-    working_hw: tuple[int, int] = (240, 320)  # (height, width) the grey frames are resized to
-    history_s: float = 4.0               # reference frames older than this are dropped
-    max_frames: int = 40                 # and at most this many are kept (frames are thinned to fit)
+    # DIS runs on at most this many pixels per frame (height, width): the ground band of the frame at its own
+    # resolution, cropped around the candidate spot when the band is larger. Full resolution matters: the
+    # parallax of a 1 m obstacle at 40-60 m height is a fraction of a pixel at 160 px across (docs §11).
+    window_hw: tuple[int, int] = (120, 160)
+    max_width_px: int = 1280             # wider frames are downscaled first (bounds the keyframe memory)
+    history_s: float = 8.0               # keyframes older than this are dropped ...
+    max_frames: int = 16                 # ... and at most this many are kept (thinned to history_s / max_frames)
     flow_noise_px: float = 0.4           # 1-σ error of the residual flow (DIS on the pre-warped pair)
     detect_sigmas: float = 3.0           # a height is detectable at this many σ
+    enough_detect_m: float = 0.25        # the newest keyframe detecting this is preferred to longer baselines
     dis_preset: DisPreset = DisPreset.FAST
     dis_refine_iterations: int = 5       # variational refinement (the fast preset's 1 leaves a ~0.1 px bias)
-    dis_finest_scale: int = 2            # pyramid level DIS stops at; 2 (quarter size) halves
-                                         # a car-sized parallax (2 m box at 57 m reads 0.7 m), 1 reads 1.1 m
-                                         # but costs ~40 ms per frame: open problem (issue #13)
-    max_range_m: float = 50.0            # ground farther than this (horizontally) from the vehicle is skipped
+    dis_finest_scale: int = 0            # pyramid level DIS stops at (1 = half size: sub-pixel parallax of
+                                         # small obstacles survives; 2 halves a car-sized parallax)
+    max_range_m: float = 80.0            # ground farther than this (horizontally) from the vehicle is skipped
     min_overlap: float = 0.5             # share of probe points the reference frame must see
     max_photometric_error: float = 24.0  # grey levels: larger residual after flow = no evidence (occlusion)
     max_cross_parallax_px: float = 1.5   # residual across the epipolar direction beyond this = no evidence
     max_sigma_h_m: float = 1.0           # pixels noisier than this are left out of the terrain fit
     min_agl_m: float = 2.0               # below this the plane model is not used
-
     def __post_init__(self) -> None:
-        h, w = self.working_hw
-        if h < 32 or w < 32:
-            raise InputError(f"motion working size must be at least 32x32 pixels, got {h}x{w}")
+        h, w = self.window_hw
+        if h < 32 or w < 32 or self.max_width_px < 32:
+            raise InputError(f"motion window must be at least 32x32 pixels, got {h}x{w} (max width "
+                             f"{self.max_width_px})")
         for name in ("history_s", "flow_noise_px", "detect_sigmas", "max_range_m", "max_photometric_error",
-                     "max_cross_parallax_px", "max_sigma_h_m", "min_agl_m"):
+                     "max_cross_parallax_px", "max_sigma_h_m", "min_agl_m", "enough_detect_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"motion {name} must be > 0, got {getattr(self, name)}")
         if self.max_frames < 2:
@@ -112,7 +116,7 @@ class _Stored:
 
 @dataclass(frozen=True)
 class ParallaxResult:
-    """Per-pixel evidence of one frame pair at the motion working size (rows ``row0`` and below).
+    """Per-pixel evidence of one frame pair on the window ``rows`` × ``cols`` of the frame at the stage's size.
 
     ``height_m``: height above the local ground (NaN where there is no evidence); ``detectable_m``: the
     smallest height this pair could have detected at that pixel (inf where no evidence); ``ned_m``: the
@@ -121,7 +125,8 @@ class ParallaxResult:
     """
 
     time_s: float
-    row0: int
+    rows: slice
+    cols: slice
     height_m: np.ndarray
     sigma_m: np.ndarray
     detectable_m: np.ndarray
@@ -171,12 +176,14 @@ def parallax_height(x_c: np.ndarray, x_r: np.ndarray, rot: np.ndarray, t: np.nda
 
 
 class MotionStage:
-    """Keeps a short history of grey frames with poses; ``update`` measures heights against the best one."""
+    """Keeps a bounded ring of grey keyframes with poses; ``update`` measures heights against the best one."""
 
     def __init__(self, config: MotionConfig, intrinsics: Intrinsics, mount: Mount):
         self.config = config
         self.mount = mount
-        h, w = config.working_hw
+        scale = min(1.0, config.max_width_px / intrinsics.width)
+        w, h = max(32, int(round(intrinsics.width * scale))), max(32, int(round(intrinsics.height * scale)))
+        self.size_hw = (h, w)
         self.intrinsics = intrinsics.scaled(w, h)
         i = self.intrinsics
         # OpenCV's warps and flows put pixel centres at integers; the runtime's rays at +0.5.
@@ -200,9 +207,9 @@ class MotionStage:
         self.last, self.last_reason = None, ""
 
     def grey(self, image: np.ndarray) -> np.ndarray:
-        """RGB (or grey) uint8 image at any size -> grey uint8 at the working size, undistorted."""
+        """RGB (or grey) uint8 image at any size -> grey uint8 at the stage's size, undistorted."""
         g = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-        h, w = self.config.working_hw
+        h, w = self.size_hw
         if g.shape != (h, w):
             g = cv2.resize(g, (w, h), interpolation=cv2.INTER_AREA)
         if g.dtype != np.uint8:
@@ -211,8 +218,13 @@ class MotionStage:
             g = cv2.remap(g, self._undistort[0], self._undistort[1], cv2.INTER_LINEAR)
         return g
 
-    def update(self, image: np.ndarray, pose: CameraPose, time_s: float) -> Optional[ParallaxResult]:
-        """Add a frame; returns its height evidence, or None (``last_reason`` says why)."""
+    def update(self, image: np.ndarray, pose: CameraPose, time_s: float,
+               focus_ned_m: Optional[np.ndarray] = None) -> Optional[ParallaxResult]:
+        """Add a frame; returns its height evidence, or None (``last_reason`` says why).
+
+        ``focus_ned_m``: a candidate spot (local NED); when the ground band is larger than ``window_hw`` the
+        window is centred on it (else on the band's lower middle).
+        """
         cfg = self.config
         self.last = None
         if not (math.isfinite(pose.agl_m) and pose.agl_m >= cfg.min_agl_m):
@@ -223,28 +235,30 @@ class MotionStage:
                                  or self._history[0].time_s >= time_s):
             self._history.popleft()
         result = None
-        ref = self._pick_reference(pose, time_s)
-        if ref is None:
-            self.last_reason = self.last_reason or "no reference frame"
-        else:
-            result = self._measure(grey, pose, ref, time_s)
+        window = self._window(pose, focus_ned_m)
+        ref = self._pick_reference(pose, window) if window is not None else None
+        if window is None:
+            self.last_reason = f"no ground within {cfg.max_range_m:.0f} m in view"
+        elif ref is not None:
+            result = self._measure(grey, pose, ref, time_s, window)
         self._store(_Stored(time_s, grey, pose))
         self.last = result
         return result
 
     def _store(self, item: _Stored) -> None:
         h = self._history
-        # Thin to the count bound: keep frames at least history_s / max_frames apart.
-        if h and item.time_s - h[-1].time_s < self.config.history_s / self.config.max_frames and len(h) > 1 \
-                and item.time_s - h[-2].time_s < 2 * self.config.history_s / self.config.max_frames:
+        # Keyframes at least history_s / max_frames apart: the newest frame replaces the previous one when
+        # that one is too close to its predecessor (the ring always holds the latest frame).
+        gap = self.config.history_s / self.config.max_frames
+        if len(h) > 1 and h[-1].time_s - h[-2].time_s < gap:
             h.pop()
         h.append(item)
         while len(h) > self.config.max_frames:
             h.popleft()
 
-    def _ground_rows(self, pose: CameraPose) -> tuple[int, np.ndarray]:
-        """First row whose ground point lies within max_range_m, and probe pixels (2×K) in the ground band."""
-        h, w = self.config.working_hw
+    def _window(self, pose: CameraPose, focus: Optional[np.ndarray]) -> Optional[tuple[slice, slice]]:
+        """Rows and columns DIS runs on: the ground band within max_range_m, cropped to window_hw."""
+        h, w = self.size_hw
         n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
         # Rows get nearer going down (camera below the horizon): test every row at five columns at once.
         xs = self._norm[0][0][np.linspace(0, w - 1, 5).astype(int)][None, :]
@@ -257,24 +271,36 @@ class MotionStage:
         pe = (r[1, 0] * xs + r[1, 1] * ys + r[1, 2]) * lam
         with np.errstate(invalid="ignore"):
             rows = np.flatnonzero(np.any(np.hypot(pn, pe) <= self.config.max_range_m, axis=1))
-        row0 = int(rows[0]) if rows.size else h
-        us = np.linspace(0.1 * w, 0.9 * w, 5)
-        vs = np.linspace(row0 + 0.1 * (h - row0), h - 1, 4)
-        uu, vv = np.meshgrid(us, vs)
-        return row0, np.vstack([uu.ravel(), vv.ravel()])
+        if rows.size == 0 or h - int(rows[0]) < 16:
+            return None
+        row0 = max(0, int(rows[0]) - 8)                      # DIS patches need a little context
+        wh, ww = min(self.config.window_hw[0], h - row0), min(self.config.window_hw[1], w)
+        cu, cv = 0.5 * w, h - 0.5 * wh
+        if focus is not None:
+            cam = pose.r_nc.T @ (np.asarray(focus, np.float64) - pose.position_ned_m)
+            if cam[2] > 0:
+                cu, cv = self.k_cv[0, 0] * cam[0] / cam[2] + self.k_cv[0, 2], \
+                    self.k_cv[1, 1] * cam[1] / cam[2] + self.k_cv[1, 2]
+        c0 = int(np.clip(round(cu - ww / 2), 0, w - ww))
+        r0 = int(np.clip(round(cv - wh / 2), row0, h - wh))
+        return slice(r0, r0 + wh), slice(c0, c0 + ww)
 
-    def _pick_reference(self, pose: CameraPose, time_s: float) -> Optional[_Stored]:
-        """The most recent frame that can detect obstacle-size heights with margin, else the most sensitive one.
+    def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice]) -> Optional[_Stored]:
+        """The newest keyframe that detects ``enough_detect_m`` with margin, else the most sensitive one.
 
-        All stored frames are scored at once at a few probe pixels of the ground band: the smallest height
-        they could detect there (median over the probes the reference frame still sees).
+        All stored frames are scored at once at a few probe pixels of the window: the smallest height they
+        could detect there (median over the probes the keyframe still sees). Hovering (no baseline) scores
+        inf: no keyframe, no evidence.
         """
         if not self._history:
             self.last_reason = "no earlier frame yet"
             return None
         cfg = self.config
-        h, w = cfg.working_hw
-        _, probes = self._ground_rows(pose)
+        h, w = self.size_hw
+        rs, cs = window
+        uu, vv = np.meshgrid(np.linspace(cs.start + 0.1 * (cs.stop - cs.start), cs.stop - 1, 5),
+                             np.linspace(rs.start + 0.1 * (rs.stop - rs.start), rs.stop - 1, 4))
+        probes = np.vstack([uu.ravel(), vv.ravel()])
         k_inv = np.linalg.inv(self.k_cv)
         xc = (k_inv @ np.vstack([probes, np.ones(probes.shape[1])]))
         items = list(self._history)
@@ -299,36 +325,38 @@ class MotionStage:
                 np.where(inside.any(axis=1, keepdims=True), gnorm, 0.0), axis=1)
         det = np.where((inside.mean(axis=1) >= cfg.min_overlap) & np.isfinite(det), det, np.inf)
         if not np.isfinite(det).any():
-            self.last_reason = "no earlier frame overlaps the current view"
+            self.last_reason = "no keyframe with baseline overlaps the current view (hovering?)"
             return None
-        # A longer baseline than needed only adds occlusion and resampling blur: the newest frame that
-        # detects a quarter of a metre, else the most sensitive one.
-        enough = np.flatnonzero(det <= 0.25)
+        # A longer baseline than needed only adds occlusion and resampling blur.
+        enough = np.flatnonzero(det <= cfg.enough_detect_m)
         return items[int(enough[-1])] if enough.size else items[int(np.argmin(det))]
 
-    def _measure(self, grey: np.ndarray, pose: CameraPose, ref: _Stored, time_s: float) -> ParallaxResult:
+    def _measure(self, grey: np.ndarray, pose: CameraPose, ref: _Stored, time_s: float,
+                 window: tuple[slice, slice]) -> ParallaxResult:
         cfg = self.config
-        h, w = cfg.working_hw
+        rs, cs = window
         hom, rot, t, n, d = plane_homography(self.k_cv, pose, ref.pose)
-        row0, _ = self._ground_rows(pose)
-        row0 = max(0, row0 - 8)                              # DIS patches need a little context
-        warped = cv2.warpPerspective(ref.grey, hom, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                     borderMode=cv2.BORDER_REPLICATE)
-        cur, wrp = grey[row0:], warped[row0:]
+        # Warp only the window: current pixel (x, y) of the window = (x + c0, y + r0) of the frame.
+        shift = np.array([[1.0, 0.0, cs.start], [0.0, 1.0, rs.start], [0.0, 0.0, 1.0]])
+        wh, ww = rs.stop - rs.start, cs.stop - cs.start
+        wrp = cv2.warpPerspective(ref.grey, hom @ shift, (ww, wh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                  borderMode=cv2.BORDER_REPLICATE)
+        cur = np.ascontiguousarray(grey[rs, cs])
         flow = np.asarray(self._dis.calc(cur, wrp, None))  # type: ignore[call-overload]
-        xx, yy = self._pix[0][row0:], self._pix[1][row0:]
+        xx, yy = self._pix[0][rs, cs], self._pix[1][rs, cs]
         mx, my = xx + flow[..., 0], yy + flow[..., 1]
-        matched = cv2.remap(wrp, mx, my - row0, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        matched = cv2.remap(wrp, mx - cs.start, my - rs.start, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         photo = np.abs(cur.astype(np.int16) - matched.astype(np.int16))
         # Where the matched point lies in the reference image (pixel-centre convention), then normalised.
         qx = hom[0, 0] * mx + hom[0, 1] * my + hom[0, 2]
         qy = hom[1, 0] * mx + hom[1, 1] * my + hom[1, 2]
         qz = hom[2, 0] * mx + hom[2, 1] * my + hom[2, 2]
         ur, vr = qx / qz, qy / qz
+        h, w = self.size_hw
         in_ref = (qz > 0) & (ur >= 0) & (ur <= w - 1) & (vr >= 0) & (vr <= h - 1)
         k_inv = np.linalg.inv(self.k_cv)
         xr = np.stack([(ur - self.k_cv[0, 2]) * k_inv[0, 0], (vr - self.k_cv[1, 2]) * k_inv[1, 1]]).reshape(2, -1)
-        xc = np.stack([self._norm[0][row0:], self._norm[1][row0:]]).reshape(2, -1)
+        xc = np.stack([self._norm[0][rs, cs], self._norm[1][rs, cs]]).reshape(2, -1)
         hgt, gnorm, cross = parallax_height(xc.astype(np.float64), xr.astype(np.float64), rot, t, n, d)
         f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
         sigma_n = cfg.flow_noise_px / f
@@ -351,7 +379,7 @@ class MotionStage:
         out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
         baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))
         self.last_reason = ""
-        return ParallaxResult(time_s, row0, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
+        return ParallaxResult(time_s, rs, cs, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
                               time_s - ref.time_s, fit)
 
     def _ned_points(self, pose: CameraPose, xc: np.ndarray, lam_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

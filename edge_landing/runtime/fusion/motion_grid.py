@@ -47,13 +47,16 @@ class GeometryGrid:
     """Square grid of cells following the vehicle (whole-cell moves), holding motion-geometry evidence."""
 
     def __init__(self, cell_m: float, radius_m: float, memory_s: float, obstacle_height_m: float,
-                 detect_sigmas: float = 3.0, obstacle_vote_share: float = 0.3):
+                 detect_sigmas: float = 3.0, obstacle_vote_share: float = 0.3, max_unexplained_share: float = 0.1,
+                 grow_m: float = 1.0):
         self.cell_m = float(cell_m)
         self.size = max(3, int(math.ceil(2.0 * radius_m / cell_m)))
         self.memory_s = float(memory_s)
         self.obstacle_height_m = float(obstacle_height_m)
         self.detect_sigmas = float(detect_sigmas)
         self.obstacle_vote_share = float(obstacle_vote_share)
+        self.max_unexplained_share = float(max_unexplained_share)
+        self.grow_m = float(grow_m)
         self.north0_m = -self.size * self.cell_m / 2.0
         self.east0_m = -self.size * self.cell_m / 2.0
         self._time_s: Optional[float] = None
@@ -95,7 +98,7 @@ class GeometryGrid:
         frame = self._frame_cells(result)
         if frame is None:
             return 0
-        r0, c0, det, high = frame
+        r0, c0, det, high, suspect = frame
         win = (slice(r0, r0 + det.shape[0]), slice(c0, c0 + det.shape[1]))
         measured = np.isfinite(det)
         best = self._det[win]
@@ -103,15 +106,16 @@ class GeometryGrid:
         better = measured & ((det <= best) | expired)
         best[better] = det[better]
         self._det_t[win][better] = t
-        confirm = measured & (det <= self.obstacle_height_m) & ~high
+        confirm = measured & (det <= self.obstacle_height_m) & ~high & ~suspect
         self._clear_t[win][confirm] = t
+        self._clear_t[win][(high | suspect) & ~confirm] = -np.inf
         self._clear_base[win][confirm] = np.float32(result.baseline_m)
         self._w[0][win] += measured | high
         self._w[1][win] += high
         return int(measured.sum())
 
-    def _frame_cells(self, result: ParallaxResult) -> Optional[tuple[int, int, np.ndarray, np.ndarray]]:
-        """(row0, col0, detectable per cell, high per cell) on the bounding box of this frame's cells."""
+    def _frame_cells(self, result: ParallaxResult) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
+        """(row0, col0, detectable, high, suspect per cell) on the bounding box of this frame's cells."""
         ned = result.ned_m
         ok = np.isfinite(ned[0])
         if not ok.any():
@@ -139,12 +143,22 @@ class GeometryGrid:
         with np.errstate(invalid="ignore"):
             high_px = reliable & (hgt >= 0.5 * self.obstacle_height_m) & (hgt >= self.detect_sigmas * sigma)
         high = np.bincount(idx[high_px], minlength=n).reshape(rows, cols) > 0
-        measured = (n_rel > 0) & (n_rel >= n_unrel)
+        # Every part of a cell must be explained by the plane model: pixels the flow could not match (occlusion
+        # by something tall, a parallax too large for the pair) are not "no evidence" but unexplained, so a
+        # cell with more than a few of them is not measured in this frame, and one with mostly unexplained
+        # pixels is suspect (its earlier confirmation is revoked: a car's top often fails the photometric check).
+        total = n_rel + n_unrel
+        measured = (n_rel > 0) & (n_unrel <= self.max_unexplained_share * total)
+        suspect = (n_unrel > 0.5 * total).reshape(rows, cols)
         det_c = np.where(measured, worst, np.inf).astype(np.float32).reshape(rows, cols)
-        det_c = _fill_holes(det_c)
-        # A pixel covers up to a few cells on the ground at range: grow what stood out by one cell.
-        high = cv2.dilate(high.view(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-        return r0, c0, det_c, high
+        det_c = _fill_holes(det_c, (total == 0).reshape(rows, cols))
+        # A pixel covers up to a few cells on the ground at range, and flow smears an obstacle's edge into the
+        # ground around it (its top is placed at a height read low): grow what stood out by ``grow_m``.
+        k = 2 * max(1, int(math.ceil(self.grow_m / self.cell_m))) + 1
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        high = cv2.dilate(high.view(np.uint8), kernel).astype(bool)
+        suspect = cv2.dilate(suspect.view(np.uint8), kernel).astype(bool)
+        return r0, c0, det_c, high, suspect
 
     def view(self, north0_m: float, east0_m: float, shape: tuple[int, int], now_s: float) -> GeometryView:
         """The evidence on a window of cells whose corner is (north0, east0) (cells outside: no evidence)."""
@@ -183,12 +197,13 @@ def _shift(a: np.ndarray, dr: int, dc: int, fill: float) -> np.ndarray:
     return out
 
 
-def _fill_holes(det: np.ndarray, min_neighbours: int = 5) -> np.ndarray:
-    """An unmeasured cell amid measured ones takes the worst of its neighbours (pixels sample the ground
-    about a cell apart at range, leaving single-cell holes that are not evidence of anything)."""
+def _fill_holes(det: np.ndarray, empty: np.ndarray, min_neighbours: int = 5) -> np.ndarray:
+    """A cell no pixel fell in, amid measured ones, takes the worst of its neighbours (pixels sample the
+    ground about a cell apart at range, leaving single-cell holes that are not evidence of anything). Cells
+    with pixels that were not measured stay unmeasured."""
     measured = np.isfinite(det)
     count = cv2.boxFilter(measured.view(np.uint8), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
     worst = cv2.dilate(np.where(measured, det, np.float32(0.0)), np.ones((3, 3), np.uint8),
                        borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
-    fill = ~measured & (count >= min_neighbours)
+    fill = empty & ~measured & (count >= min_neighbours)
     return np.where(fill, worst, det).astype(np.float32)

@@ -34,6 +34,9 @@ class ContinuityConfig:
     hold_s: float = 20.0          # dropped after this long without a confirming target
     contradiction_radius_m: float = 1.0  # an observed, non-landable cell this close to the spot contradicts it
     held_confidence: float = 0.5  # confidence factor of a target re-sent from memory
+    # Only spots the drone's own motion confirmed are committed (ARCHITECTURE.md §11): a network-only target
+    # (sent under --allow-unconfirmed) is passed on but never re-sent from memory, unless this is set too.
+    commit_unconfirmed: bool = False
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,8 @@ class Continuity:
         if state is None:
             return target, self._drop_said("telemetry not fresh")
         if target.valid:
+            if not (target.geometry_confirmed or self.config.commit_unconfirmed):
+                return target, ""
             return target, self._observe(target, state)
         spot = self.spot
         if spot is None or not reached_fusion:
