@@ -39,6 +39,7 @@ def test_video_run_logs_every_decision_records_overlay_and_prints_summary(assets
     decisions = read_decisions(log_path)
     assert [d["frame"] for d in decisions] == list(range(10))
     assert all(d["valid"] and d["reason"] == "ok" and d["clearance_m"] >= 1.0 for d in decisions)
+    assert all(d["evidence"].startswith("network only") for d in decisions)  # said in the log (§11)
     assert all(d["body_frd_m"][0] > 0 and abs(d["body_frd_m"][2] - 10.0) < 0.3 for d in decisions)
     cap = cv2.VideoCapture(str(rec))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 10

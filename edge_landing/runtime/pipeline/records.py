@@ -28,7 +28,10 @@ def describe_target(target: Optional[Target]) -> str:
 def decision_record(target: Target, pred: Prediction, state: Optional[VehicleState], sent: bool, why: str,
                     scale_source: str, level_assumed: bool = False) -> Dict[str, Any]:
     """One ``--log`` line. ``sent`` is true only when the target really left the socket; ``not_sent_because``
-    says why not; ``level_assumed`` marks an offline run without telemetry (level flight assumed)."""
+    says why not; ``level_assumed`` marks an offline run without telemetry (level flight assumed); ``evidence``
+    is "geometry+network" (confirmed by the drone's own motion) or "network only" (--allow-unconfirmed), with
+    the baseline and detectable obstacle height of the spot's geometry cell; ``tracked_ned_m`` is the
+    network's unconfirmed spot on a frame that sent none."""
     def vec(v: Optional[Any]) -> Optional[List[float]]:
         return None if v is None else [round(float(x), 4) for x in v]
 
@@ -37,7 +40,11 @@ def decision_record(target: Target, pred: Prediction, state: Optional[VehicleSta
             "ned_m": vec(target.position_ned_m), "range_m": _num(target.range_m), "clearance_m": _num(target.clearance_m),
             "confidence": _num(target.confidence), "scale": _num(pred.scale), "scale_source": scale_source,
             "telemetry": state is not None, "agl_m": None if state is None else state.agl_m,
-            "level_assumed": level_assumed, "sent": sent, "not_sent_because": "" if sent else why}
+            "level_assumed": level_assumed, "sent": sent, "not_sent_because": "" if sent else why,
+            # Which evidence vouched for the spot and the motion-geometry figures of its cell (§11).
+            "evidence": target.evidence, "geometry_baseline_m": _num(target.geometry_baseline_m),
+            "geometry_detectable_m": _num(target.geometry_detectable_m),
+            "geometry_age_s": _num(target.geometry_age_s), "tracked_ned_m": vec(target.tracked_ned_m)}
 
 
 def _num(v: Optional[float]) -> Optional[float]:
