@@ -65,7 +65,7 @@ class MotionConfig:
     max_width_px: int = 1280             # wider frames are downscaled first (bounds the keyframe memory)
     history_s: float = 8.0               # keyframes older than this are dropped ...
     max_frames: int = 16                 # ... and at most this many are kept (thinned to history_s / max_frames)
-    flow_noise_px: float = 0.4           # 1-σ error of the residual flow (DIS on the pre-warped pair)
+    flow_noise_px: float = 0.1           # floor of the residual flow's 1-σ error (each pair measures its own)
     detect_sigmas: float = 3.0           # a height is detectable at this many σ
     enough_detect_m: float = 0.25        # the newest keyframe detecting this is preferred to longer baselines
     dis_preset: DisPreset = DisPreset.FAST
@@ -134,6 +134,7 @@ class ParallaxResult:
     baseline_m: float
     reference_age_s: float
     ground_fit: np.ndarray           # quadratic terrain coefficients (1, n, e, n², ne, e²), n/e in 100 m
+    flow_noise_px: float = float("nan")  # the flow noise used: measured across the epipolar lines, floored
 
 
 def plane_homography(k: np.ndarray, cur: CameraPose, ref: CameraPose) -> tuple[np.ndarray, np.ndarray, np.ndarray,
@@ -359,11 +360,16 @@ class MotionStage:
         xc = np.stack([self._norm[0][rs, cs], self._norm[1][rs, cs]]).reshape(2, -1)
         hgt, gnorm, cross = parallax_height(xc.astype(np.float64), xr.astype(np.float64), rot, t, n, d)
         f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
-        sigma_n = cfg.flow_noise_px / f
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sigma0 = d * sigma_n / gnorm
         shape = cur.shape
-        hgt, sigma0, cross = hgt.reshape(shape), sigma0.reshape(shape), cross.reshape(shape)
+        hgt, gnorm, cross = hgt.reshape(shape), gnorm.reshape(shape), cross.reshape(shape)
+        # The residual across the epipolar direction is flow error only (parallax lies along it): its robust
+        # spread is this pair's flow noise, used when above the configured floor.
+        matchable = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error)
+        noise_px = cfg.flow_noise_px
+        if int(matchable.sum()) >= 100:
+            noise_px = max(noise_px, 1.4826 * float(np.median(cross[matchable])) * f)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sigma0 = d * (noise_px / f) / gnorm
         # NED point of each pixel at its measured height (the plane point where there is no height).
         lam_scale = np.where(np.isfinite(hgt), np.clip(1.0 - hgt / d, 0.05, 1.0), 1.0)
         ned, nx = self._ned_points(pose, xc, lam_scale.reshape(-1))
@@ -371,7 +377,7 @@ class MotionStage:
         near = (nx.reshape(shape) > 0) & (np.hypot(ned[0] - pose.position_ned_m[0],
                                                    ned[1] - pose.position_ned_m[1]) <= cfg.max_range_m)
         reliable = near & in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error) \
-            & (cross * f <= max(cfg.max_cross_parallax_px, 3 * cfg.flow_noise_px))
+            & (cross * f <= max(cfg.max_cross_parallax_px, 3 * noise_px))
         fit = _fit_ground(ned, hgt, sigma0, reliable & (sigma0 <= cfg.max_sigma_h_m), pose.position_ned_m)
         local = hgt - _ground_surface(fit, ned, pose.position_ned_m)
         height = np.where(reliable, local, np.nan).astype(np.float32)
@@ -380,7 +386,7 @@ class MotionStage:
         baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))
         self.last_reason = ""
         return ParallaxResult(time_s, rs, cs, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
-                              time_s - ref.time_s, fit)
+                              time_s - ref.time_s, fit, noise_px)
 
     def _ned_points(self, pose: CameraPose, xc: np.ndarray, lam_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
