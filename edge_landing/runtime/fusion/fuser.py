@@ -220,7 +220,8 @@ class LandingFuser:
         """:meth:`update` plus the grid this frame was judged on (None when the frame did not reach the grid)."""
         before = self._view
         target = self.update(pred, state, now_s, image)
-        return FusionResult(target, self._view if self._view is not before else None)
+        reached = self._view is not before
+        return FusionResult(target, self._view if reached else None, self._geo if reached else None)
 
     def update(self, pred: Prediction, state: VehicleState | None = None, now_s: float | None = None,
                image: Optional[np.ndarray] = None) -> Target:

@@ -65,7 +65,7 @@ class MotionConfig:
     max_width_px: int = 1280             # wider frames are downscaled first (bounds the keyframe memory)
     history_s: float = 8.0               # keyframes older than this are dropped ...
     max_frames: int = 16                 # ... and at most this many are kept (thinned to history_s / max_frames)
-    flow_noise_px: float = 0.1           # floor of the residual flow's 1-σ error (each pair measures its own)
+    flow_noise_px: float = 0.2           # floor of the residual flow's 1-σ error (each pair measures its own)
     detect_sigmas: float = 3.0           # a height is detectable at this many σ
     enough_detect_m: float = 0.25        # the newest keyframe detecting this is preferred to longer baselines
     dis_preset: DisPreset = DisPreset.FAST
@@ -73,6 +73,10 @@ class MotionConfig:
     dis_finest_scale: int = 0            # pyramid level DIS stops at (1 = half size: sub-pixel parallax of
                                          # small obstacles survives; 2 halves a car-sized parallax)
     max_range_m: float = 80.0            # ground farther than this (horizontally) from the vehicle is skipped
+    # DIS smooths over its patch: a gap or an obstacle narrower than the patch's footprint on the ground
+    # (patch px × range / f) reads at a fraction of its height (1.6 m gaps between packed cars vanished at
+    # 1.9 m footprint). Pixels with a larger footprint still report obstacles but cannot confirm.
+    max_patch_footprint_m: float = 1.5
     min_overlap: float = 0.5             # share of probe points the reference frame must see
     max_photometric_error: float = 24.0  # grey levels: larger residual after flow = no evidence (occlusion)
     max_cross_parallax_px: float = 1.5   # residual across the epipolar direction beyond this = no evidence
@@ -84,7 +88,8 @@ class MotionConfig:
             raise InputError(f"motion window must be at least 32x32 pixels, got {h}x{w} (max width "
                              f"{self.max_width_px})")
         for name in ("history_s", "flow_noise_px", "detect_sigmas", "max_range_m", "max_photometric_error",
-                     "max_cross_parallax_px", "max_sigma_h_m", "min_agl_m", "enough_detect_m"):
+                     "max_cross_parallax_px", "max_sigma_h_m", "min_agl_m", "enough_detect_m",
+                     "max_patch_footprint_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"motion {name} must be > 0, got {getattr(self, name)}")
         if self.max_frames < 2:
@@ -381,7 +386,11 @@ class MotionStage:
         fit = _fit_ground(ned, hgt, sigma0, reliable & (sigma0 <= cfg.max_sigma_h_m), pose.position_ned_m)
         local = hgt - _ground_surface(fit, ned, pose.position_ned_m)
         height = np.where(reliable, local, np.nan).astype(np.float32)
-        detectable = np.where(reliable, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
+        patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)
+        rng = np.sqrt((ned[0] - pose.position_ned_m[0]) ** 2 + (ned[1] - pose.position_ned_m[1]) ** 2
+                      + (ned[2] - pose.position_ned_m[2]) ** 2)
+        resolved = patch_px * rng / f <= cfg.max_patch_footprint_m
+        detectable = np.where(reliable & resolved, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
         out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
         baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))
         self.last_reason = ""
@@ -408,8 +417,8 @@ def _fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.nda
                 max_points: int = 3000) -> np.ndarray:
     """Robust quadratic surface through the ground's heights (coefficients in 100 m units).
 
-    Starts from the 30th percentile (most pixels within the range are ground; buildings and trees sit
-    above it) and trims to shrinking windows, so obstacles do not lift the surface.
+    Starts from the 10th percentile (obstacles sit above the ground; some ground shows between them) and
+    trims to shrinking windows that reach less far up than down, so obstacles do not lift the surface.
     """
     coef = np.zeros(6)
     idx = np.flatnonzero(use.reshape(-1))
@@ -421,10 +430,12 @@ def _fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.nda
     dn = (ned[0].reshape(-1)[idx] - here[0]) / 100.0
     de = (ned[1].reshape(-1)[idx] - here[1]) / 100.0
     a = _design(dn, de)
-    coef[0] = float(np.percentile(h, 30))
+    coef[0] = float(np.percentile(h, 10))
     for window in (3.0, 1.5, 0.6):
         res = h - a @ coef
-        inl = np.abs(res) <= window
+        # Asymmetric: what stands out above the surface is left out sooner than what lies below it, so a
+        # field packed with cars of one height does not become a raised "ground" at their roofs.
+        inl = (res >= -window) & (res <= 0.3 * window)
         if inl.sum() < 30:
             break
         sol, *_ = np.linalg.lstsq(a[inl], h[inl], rcond=None)

@@ -4,7 +4,8 @@ Cells have the fusion grid's size and origin convention (edges at multiples of `
 line up cell for cell. Per cell, from each frame pair (motion.ParallaxResult):
 - the smallest obstacle height that frame could have detected there (``detectable``, the worst reliable
   pixel of the cell: every part of the cell must have been measurable);
-- whether some pixel stood out: height >= half the obstacle height and >= ``detect_sigmas`` σ ("high").
+- whether some pixel stood out: |height| >= half the obstacle height and >= ``detect_sigmas`` σ ("high";
+  drops count too: a site must be flat).
 Across frames: ``clear_t`` is the last time a frame found the cell measurable to the obstacle height and
 not high; ``seen_w`` / ``high_w`` are weights of frames that measured it / found it high, decaying with
 ``memory_s``. A cell is *geometry-clear* while ``now - clear_t <= memory_s`` and it is not an obstacle;
@@ -141,7 +142,10 @@ class GeometryGrid:
         np.maximum.at(worst, idx[reliable], det[reliable])
         sigma = det / np.float32(self.detect_sigmas)
         with np.errstate(invalid="ignore"):
-            high_px = reliable & (hgt >= 0.5 * self.obstacle_height_m) & (hgt >= self.detect_sigmas * sigma)
+            # Both signs: a landing site must be flat, and a drop (a gap between packed cars seen as the
+            # "ground" at their roofs, a roof's edge, a ditch) is as disqualifying as something standing up.
+            dev = np.abs(hgt)
+            high_px = reliable & (dev >= 0.5 * self.obstacle_height_m) & (dev >= self.detect_sigmas * sigma)
         high = np.bincount(idx[high_px], minlength=n).reshape(rows, cols) > 0
         # Every part of a cell must be explained by the plane model: pixels the flow could not match (occlusion
         # by something tall, a parallax too large for the pair) are not "no evidence" but unexplained, so a

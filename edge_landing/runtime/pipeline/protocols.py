@@ -12,6 +12,7 @@ import numpy as np
 
 from edge_landing.runtime.core.messages import Frame, Prediction, Target, VehicleState
 from edge_landing.runtime.fusion.grid import GridView
+from edge_landing.runtime.fusion.motion_grid import GeometryView
 from edge_landing.runtime.fusion.result import FusionResult
 from edge_landing.runtime.io.telemetry import TelemetryMatch
 
@@ -58,7 +59,7 @@ class Recorder(Protocol):
     """The overlay video (or anything that wants every frame with its outcome)."""
 
     def write(self, frame: Frame, pred: Prediction, target: Target, state: Optional[VehicleState] = None,
-              grid: Optional[GridView] = None) -> None: ...
+              grid: Optional[GridView] = None, geometry: Optional[GeometryView] = None) -> None: ...
 
 
 class Inference(Protocol):
