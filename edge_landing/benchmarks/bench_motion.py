@@ -41,7 +41,7 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
 
     scfg = SimConfig(out=Path("."), frames=200, style=sim.Style.from_string(style), seed=seed, flight=True,
                      fps=10.0, width=width, height=height)
-    world = sim.build_world(scfg.style, seed)
+    world = sim.build_world(scfg.style, seed, hazards=True)
     mount, intr = Mount(), scfg.intrinsics
     renderer = sim.Renderer(world, intr, mount)
     shots = []

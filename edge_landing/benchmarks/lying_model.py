@@ -37,6 +37,7 @@ class ReplayConfig:
     models: tuple[str, ...] = ("lying",)
     obstacle_height_m: float = 0.5
     recall_every: int = 10            # frames between per-cell geometry checks
+    hazards: bool = True              # hazard-rich worlds (sim.hazards)
     width: int = 320                  # camera size: the networks see it resized, motion geometry crops it
     height: int = 240
 
@@ -92,7 +93,7 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
 
     scfg = SimConfig(out=Path("."), frames=cfg.frames, style=sim.Style.from_string(cfg.style), seed=cfg.seed,
                      flight=True, fps=cfg.fps, width=cfg.width, height=cfg.height)
-    world = sim.build_world(scfg.style, cfg.seed)
+    world = sim.build_world(scfg.style, cfg.seed, hazards=cfg.hazards)
     mount = Mount()
     intr = scfg.intrinsics
     renderer = sim.Renderer(world, intr, mount)
@@ -160,10 +161,12 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--models", nargs="+", default=["lying"], choices=["lying", "shipped"])
     p.add_argument("--obstacle-height", type=float, default=0.5)
     p.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"), help="camera size")
+    p.add_argument("--no-hazards", action="store_true", help="the plain towns (no sim.hazards)")
     p.add_argument("--json", help="write the result here")
     a = p.parse_args(argv)
     result = replay(ReplayConfig(a.style, a.seed, a.frames, models=tuple(a.models),
-                                 obstacle_height_m=a.obstacle_height, width=a.size[0], height=a.size[1]),
+                                 obstacle_height_m=a.obstacle_height, width=a.size[0], height=a.size[1],
+                                 hazards=not a.no_hazards),
                     progress=True)
     print(f"{a.style} seed {a.seed}, {a.frames} frames, camera {a.size[0]}x{a.size[1]}")
     print(_summary(result))

@@ -28,7 +28,7 @@ CLUTTER_TINTS = np.array([[0.60, 0.55, 0.45], [0.35, 0.38, 0.40], [0.75, 0.72, 0
 class HazardConfig:
     """Metres; ``per_spot`` hazards around every landing spot."""
 
-    per_spot: int = 10
+    per_spot: int = 25
     keep_clear_m: float = 7.0     # nothing closer to the spot's centre than this (its 5 m disc stays open)
     ring_m: float = 30.0          # ... nor farther than this
 
