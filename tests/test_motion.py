@@ -130,3 +130,34 @@ def test_lying_model_cannot_put_a_target_on_a_car_or_a_roof():
             unsafe_liar += not check_target(world, *t_liar.position_ned_m[:2], truth)[0]
     assert unsafe_liar > 0                                # the liar alone does land on hazards here
     assert confirmed > 0, "geometry never confirmed a spot: the safety check above would be vacuous"
+    # The overlay shows it: confirmed cells green, obstacles from parallax magenta (ARCHITECTURE.md §11).
+    from edge_landing.runtime.io.overlay import grid_inset
+
+    inset = grid_inset(geo.grid, t_geo, state, geometry=geo.geometry)
+    assert inset is not None
+    colours = {tuple(int(v) for v in px) for px in inset.reshape(-1, 3)}
+    assert (40, 190, 60) in colours and (220, 50, 220) in colours
+
+
+def test_only_geometry_confirmed_targets_are_committed():
+    """Continuity (ARCHITECTURE.md §12) re-sends a committed spot from memory: a network-only target never
+    becomes one by default, a geometry-confirmed one does."""
+    from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, EVIDENCE_NETWORK_ONLY, Target
+    from edge_landing.runtime.pipeline.trust import Continuity, ContinuityConfig
+
+    state = VehicleState(0.0, position_ned_m=np.array([0.0, 0.0, -10.0]), agl_m=10.0)
+    spot = np.array([8.0, 0.0, 0.0])
+
+    def run(evidence: str, config: ContinuityConfig = ContinuityConfig(commit_frames=2)) -> Continuity:
+        cont = Continuity(config)
+        for i in range(4):
+            cont.step(Target(i, float(i), True, position_body_frd_m=spot - state.position_ned_m, position_ned_m=spot,
+                             clearance_m=3.0, confidence=0.9, evidence=evidence), state, None, True)
+        return cont
+
+    assert run(f"{EVIDENCE_NETWORK_ONLY} (unconfirmed: ...)").spot is None
+    assert run(EVIDENCE_GEOMETRY).spot is not None
+    held, _ = run(EVIDENCE_GEOMETRY).step(Target.none(5, 5.0, "unconfirmed"), state, None, True)
+    assert held.valid and held.reason.startswith("held")
+    explicit = ContinuityConfig(commit_frames=2, commit_unconfirmed=True)   # edge-run --allow-unconfirmed
+    assert run(EVIDENCE_NETWORK_ONLY, explicit).spot is not None

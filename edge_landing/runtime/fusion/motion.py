@@ -69,6 +69,8 @@ class MotionConfig:
     detect_sigmas: float = 3.0           # a height is detectable at this many σ
     enough_detect_m: float = 0.25        # the newest keyframe detecting this is preferred to longer baselines
     dis_preset: DisPreset = DisPreset.FAST
+    dis_patch_px: int = 4                # DIS patch side and stride: the patch's footprint on the ground
+    dis_patch_stride_px: int = 2         # bounds the narrowest feature resolved (max_patch_footprint_m)
     dis_refine_iterations: int = 5       # variational refinement (the fast preset's 1 leaves a ~0.1 px bias)
     dis_finest_scale: int = 0            # pyramid level DIS stops at (1 = half size: sub-pixel parallax of
                                          # small obstacles survives; 2 halves a car-sized parallax)
@@ -202,6 +204,8 @@ class MotionStage:
         self._dis = config.dis_preset.create()
         self._dis.setVariationalRefinementIterations(config.dis_refine_iterations)
         self._dis.setFinestScale(config.dis_finest_scale)
+        self._dis.setPatchSize(config.dis_patch_px)
+        self._dis.setPatchStride(config.dis_patch_stride_px)
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
         self._pix = (xx, yy)
         self._norm = ((xx - self.k_cv[0, 2]) / i.fx, (yy - self.k_cv[1, 2]) / i.fy)
