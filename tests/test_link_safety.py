@@ -15,7 +15,7 @@ import pytest
 
 from edge_landing.cli.run import main
 from edge_landing.runtime.core.camera import Intrinsics, Mount
-from edge_landing.runtime.core.messages import Frame, Prediction, Target, VehicleState
+from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, Frame, Prediction, Target, VehicleState
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
 from edge_landing.runtime.io.sources import Grabber, SourceConfig, SourceKind
@@ -79,7 +79,7 @@ def test_tcp_endpoint_that_drops_connection_attempts_does_not_block_start_up(ass
         port = free_tcp_port()
         with FakeAutopilot(port, lambda f, t: f.healthy(), tcp=True) as fake:
             assert main(["--camera", assets["video"], "--model", assets["model"], "--loop", "--duration", "1.5",
-                         "--mav", f"tcp:127.0.0.1:{port}"]) == 0
+                         "--mav", f"tcp:127.0.0.1:{port}", "--allow-unconfirmed"]) == 0
         assert len(fake.of_type("LANDING_TARGET")) >= 5
     finally:
         for c in fillers:
@@ -108,7 +108,8 @@ def test_old_target_is_dropped_not_queued_and_up_means_heard():
 def test_udp_while_down_logs_sent_false(assets, tmp_path):
     log_path = tmp_path / "down.jsonl"
     assert main(["--camera", assets["video"], "--model", assets["model"], "--mav",
-                 f"udpout:127.0.0.1:{free_udp_port()}", "--log", str(log_path)]) == 0
+                 f"udpout:127.0.0.1:{free_udp_port()}", "--log", str(log_path),
+                 "--allow-unconfirmed"]) == 0
     decisions = read_decisions(log_path)
     assert decisions and not any(d["sent"] for d in decisions)
     assert all(d["not_sent_because"] for d in decisions)
@@ -146,7 +147,7 @@ def _ground_prediction(frame_id: int, t: float, depth: np.ndarray) -> Prediction
 def test_grid_memory_is_bounded_in_time_whatever_the_frame_rate(fps):
     mount = Mount(pitch_rad=math.radians(-45.0))
     k = Intrinsics.from_hfov(64, 48, math.radians(90.0))
-    fuser = LandingFuser(FusionConfig(), k, mount)
+    fuser = LandingFuser(FusionConfig(allow_unconfirmed=True), k, mount)  # no images: network grid memory only
     ground = ground_plane_depth(48, 64, AGL_M, mount)
     sky = np.full((48, 64), 5000.0, np.float32)          # valid depth, all beyond the grid: no new evidence
     state = VehicleState(0.0, position_ned_m=np.array([0.0, 0.0, -AGL_M]), agl_m=AGL_M)
@@ -210,7 +211,8 @@ def test_truncated_jpeg_in_a_run_gives_no_target_for_that_frame(assets, tmp_path
     data = (folder / "2.jpg").read_bytes()
     (folder / "2.jpg").write_bytes(data[:int(0.4 * len(data))])
     log_path = tmp_path / "t.jsonl"
-    assert main(["--camera", str(folder), "--model", assets["model"], "--log", str(log_path)]) == 0
+    assert main(["--camera", str(folder), "--model", assets["model"], "--log", str(log_path),
+                 "--allow-unconfirmed"]) == 0  # still images: no motion for geometry
     decisions = read_decisions(log_path)
     assert [d["valid"] for d in decisions] == [True, True, False, True]
     assert "end-of-image" in decisions[2]["reason"]
@@ -223,7 +225,7 @@ def test_continuity_drops_a_spot_that_fresh_evidence_contradicts():
     spot = np.array([8.0, 0.0, 0.0])
     for i in range(3):
         target = Target(i, float(i), True, position_body_frd_m=spot - state.position_ned_m, position_ned_m=spot,
-                        clearance_m=3.0, confidence=0.9)
+                        clearance_m=3.0, confidence=0.9, evidence=EVIDENCE_GEOMETRY)
         out, said = cont.step(target, state, None, True)
         assert out is target and said == ""
     assert cont.spot is not None

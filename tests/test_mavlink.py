@@ -43,7 +43,8 @@ def assets(tmp_path_factory):
 
 
 def edge_run(assets, *extra):
-    return main(["--camera", assets["video"], "--model", assets["model"], *extra])
+    # Random video frames of a flat-ground model: nothing for motion geometry to confirm, so the explicit flag.
+    return main(["--camera", assets["video"], "--model", assets["model"], "--allow-unconfirmed", *extra])
 
 
 def test_ardupilot_landing_target_and_heartbeat_decoded_by_a_pymavlink_peer(assets):
@@ -257,7 +258,7 @@ def test_sim_flight_video_to_landing_targets(assets, tmp_path):
     log_path = tmp_path / "t.jsonl"
     with LoopbackAutopilot(port) as peer:
         assert main(["--camera", str(video), "--model", assets["model"], "--mav", f"udpout:127.0.0.1:{port}",
-                     "--log", str(log_path)]) == 0
+                     "--log", str(log_path), "--allow-unconfirmed"]) == 0
         wait_for(lambda: len(peer.of_type("LANDING_TARGET")) >= 6, 3.0)
     decisions = read_decisions(log_path)
     assert len(decisions) == 6
@@ -272,7 +273,7 @@ def test_in_flight_altitude_scale_from_autopilot_telemetry(assets, tmp_path):
     log_path = tmp_path / "alt.jsonl"
     with LoopbackAutopilot(port, telemetry=True, position_ned=(0.0, 0.0, -AGL_M)) as ap:
         assert main(["--camera", assets["video"], "--loop", "--duration", "2.5", "--model", str(half),
-                     "--mav", f"udpout:127.0.0.1:{port}", "--log", str(log_path)]) == 0
+                     "--mav", f"udpout:127.0.0.1:{port}", "--log", str(log_path), "--allow-unconfirmed"]) == 0
     decisions = read_decisions(log_path)
     scaled = [d for d in decisions if d["scale_source"].startswith("altitude")]
     assert scaled and all(d["scale"] == pytest.approx(2.0, rel=0.02) for d in scaled)

@@ -33,12 +33,13 @@ def assets(tmp_path_factory):
 def test_video_run_logs_every_decision_records_overlay_and_prints_summary(assets, tmp_path, capsys):
     log_path, rec = tmp_path / "targets.jsonl", tmp_path / "overlay.mp4"
     assert main(["--camera", assets["video"], "--model", assets["model"], "--log", str(log_path),
-                 "--record", str(rec), "--vehicle-radius", "0.5", "--margin", "0.5"]) == 0
+                 "--record", str(rec), "--vehicle-radius", "0.5", "--margin", "0.5", "--allow-unconfirmed"]) == 0
     out = capsys.readouterr().out
     assert "pipeline images/s" in out and "model-only images/s" in out and "stopped by end of input" in out
     decisions = read_decisions(log_path)
     assert [d["frame"] for d in decisions] == list(range(10))
     assert all(d["valid"] and d["reason"] == "ok" and d["clearance_m"] >= 1.0 for d in decisions)
+    assert all(d["evidence"].startswith("network only") for d in decisions)  # said in the log (§11)
     assert all(d["body_frd_m"][0] > 0 and abs(d["body_frd_m"][2] - 10.0) < 0.3 for d in decisions)
     cap = cv2.VideoCapture(str(rec))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 10
@@ -52,7 +53,7 @@ def test_max_frames_and_calibration_scale(assets, tmp_path):
     cal_path = cal.save(tmp_path / "edge_landing.calibration.json")
     log_path = tmp_path / "t.jsonl"
     assert main(["--camera", assets["video"], "--model", str(model), "--calibration", str(cal_path),
-                 "--max-frames", "4", "--log", str(log_path)]) == 0
+                 "--max-frames", "4", "--log", str(log_path), "--allow-unconfirmed"]) == 0
     decisions = read_decisions(log_path)
     assert len(decisions) == 4
     assert all(d["scale"] == 2.0 and d["scale_source"] == "calibration" for d in decisions)
@@ -143,7 +144,7 @@ def test_poses_replay_gives_ned_targets_for_a_recorded_flight(assets, tmp_path):
     poses.write_text("\n".join(rows) + "\n")
     log_path = tmp_path / "t.jsonl"
     assert main(["--camera", assets["video"], "--model", assets["model"], "--poses", str(poses),
-                 "--vehicle-radius", "0.5", "--margin", "0.5", "--log", str(log_path)]) == 0
+                 "--vehicle-radius", "0.5", "--margin", "0.5", "--log", str(log_path), "--allow-unconfirmed"]) == 0
     decisions = read_decisions(log_path)
     assert len(decisions) == 10 and all(d["valid"] for d in decisions)
     for d in decisions:

@@ -31,12 +31,14 @@ def assets(tmp_path_factory):
 
 def run_against(assets, tmp_path, script, duration_s: float = 5.5, *extra: str, tcp: bool = False
                 ) -> Tuple[FakeAutopilot, list, str]:
+    # Random video frames of a flat-ground model while hovering: motion geometry has nothing to confirm, so
+    # these trust-rule runs send (and commit) network-only spots with the explicit flag (ARCHITECTURE.md §11).
     port = free_tcp_port() if tcp else free_udp_port()
     log_path = tmp_path / "decisions.jsonl"
     with FakeAutopilot(port, script, tcp=tcp) as fake:
         url = f"tcp:127.0.0.1:{port}" if tcp else f"udpout:127.0.0.1:{port}"
         assert main(["--camera", assets["video"], "--model", assets["model"], "--loop", "--duration", str(duration_s),
-                     "--mav", url, "--log", str(log_path), *extra]) == 0
+                     "--mav", url, "--log", str(log_path), "--allow-unconfirmed", *extra]) == 0
     return fake, read_decisions(log_path), log_path.read_text()
 
 

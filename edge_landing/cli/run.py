@@ -91,6 +91,8 @@ class RunConfig:
     # per-frame grid when telemetry has no position). Fusion accumulates per-frame verdicts there, not raw
     # heights, so the model's frame-to-frame depth scale error (~1 % at 60-80 m) does not break it.
     grid: GridMode = GridMode.NED
+    obstacle_height_m: float = 0.5      # motion geometry must resolve this to confirm a spot (§11)
+    allow_unconfirmed: bool = False     # send network-only spots (offline images have no motion)
 
     def __post_init__(self) -> None:
         if self.hold_s < 0:
@@ -166,6 +168,10 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--log", dest="log_path", help="every decision as JSON lines")
     o.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0 = no limit)")
     o.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0 = no limit)")
+    f.add_argument("--obstacle-height", type=float, default=0.5, help="metres: a spot is confirmed only when the "
+                   "drone's own motion could have seen an obstacle this tall there and saw none")
+    f.add_argument("--allow-unconfirmed", action="store_true", help="also send spots only the network vouches "
+                   "for (no motion geometry, e.g. still images); marked 'network only' in the log")
     return p
 
 
@@ -180,7 +186,8 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
                      hfov_deg=a.hfov, mount_pitch_deg=a.mount_pitch, record=a.record, log_path=a.log_path,
                      max_frames=a.max_frames, duration_s=a.duration, overlap=not a.sequential,
-                     grid=GridMode.from_string(a.grid))
+                     grid=GridMode.from_string(a.grid), obstacle_height_m=a.obstacle_height,
+                     allow_unconfirmed=a.allow_unconfirmed)
 
 
 def choose_files(cfg: RunConfig) -> Tuple[ModelChoice, ...]:
@@ -252,7 +259,8 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
     calibration = load_calibration(cfg.calibration, inference.models[0].sha256) if cfg.calibration else None
     src = SourceConfig(camera=cfg.camera, kind=SourceKind.from_string(cfg.camera), width=cfg.camera_width,
                        height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "")
-    fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m)
+    fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m,
+                              obstacle_height_m=cfg.obstacle_height_m, allow_unconfirmed=cfg.allow_unconfirmed)
     telemetry = TelemetryBuffer()
     # sim-follow renders the autopilot's pose: with --mav the link's telemetry is the drone's (as in flight),
     # without it the frame's own pose is.
@@ -298,7 +306,8 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
         options = PipelineOptions(cfg.max_frames, cfg.duration_s, overlap=cfg.overlap,
                                   world_grid=cfg.grid is GridMode.NED,
                                   continuity=ContinuityConfig(hold_s=cfg.hold_s,
-                                                               min_clearance_m=fusion_cfg.required_clearance_m))
+                                                               min_clearance_m=fusion_cfg.required_clearance_m,
+                                                               commit_unconfirmed=cfg.allow_unconfirmed))
         h, w = first.rgb.shape[:2]
         pipeline = Pipeline(grabber, inference, scale, fuser.fuse, telemetry if has_telemetry else None, link,
                             options, decision_log, recorder, out, FrameCheck(w, h))

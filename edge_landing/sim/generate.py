@@ -48,6 +48,7 @@ class SimConfig:
     shadow_stride: int = 1
     overwrite: bool = False
     randomise: bool = False      # sim/randomise.py + sim/appearance.py: camera, palette and look draws
+    hazards: bool = False       # sim.hazards around the landing spots
 
     def __post_init__(self):
         if self.frames < 1:
@@ -153,7 +154,7 @@ def generate(config: SimConfig, progress: bool = True) -> Path:
     thresholds = HvoThresholds()
     meta = SceneMeta(intrinsics=config.intrinsics, mount=Mount(), hvo_thresholds=thresholds)
     writer = SceneWriter(out, meta)            # fails fast on an unwritable folder, before the slow work
-    world = build_world(config.style, config.seed)
+    world = build_world(config.style, config.seed, config.hazards)
     renderer = Renderer(world, config.intrinsics, meta.mount, thresholds, config.shadow_stride)
     if config.randomise:
         from .appearance import sample_palette
@@ -207,7 +208,7 @@ def render_sample(config: SimConfig, frame: int, sample: VehicleSample,
                   renderer: Optional[Renderer] = None) -> Rendering:
     """Render one vehicle sample with the configuration's effects (used by the live camera and tests)."""
     if renderer is None:
-        renderer = Renderer(build_world(config.style, config.seed), config.intrinsics, Mount(), HvoThresholds(),
+        renderer = Renderer(build_world(config.style, config.seed, config.hazards), config.intrinsics, Mount(), HvoThresholds(),
                             config.shadow_stride)
     return renderer.render(sample.position_ned_m, sample.attitude, frame_effects(config, frame),
                            frame_rng(config.seed, frame, _PURPOSE_SENSOR))

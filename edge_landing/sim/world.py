@@ -219,8 +219,13 @@ def _finish(style: Style, seed: int, part: Part, terrain: Terrain, ground: Groun
 
 
 @lru_cache(maxsize=4)
-def build_world(style: Style | str, seed: int) -> World:
-    """The world for (style, seed): deterministic, cached per process (a second call is free)."""
+def build_world(style: Style | str, seed: int, hazards: bool = False) -> World:
+    """The world for (style, seed): deterministic, cached per process (a second call is free).
+
+    ``hazards``: cars, bushes, trees, low walls, poles and clutter around the landing spots (sim.hazards),
+    from their own Generator, so the town's layout does not depend on it. Off by default: the existing
+    seeds' tests judge the network alone, which these hazards defeat (edge-sim --hazards, lying_model).
+    """
     from .towns import suburban_layout, urban_layout
 
     style = style if isinstance(style, Style) else Style.from_string(style)
@@ -239,4 +244,9 @@ def build_world(style: Style | str, seed: int) -> World:
         terrain = make_terrain(rng, amplitude_m=1.0)
         ground = GroundMap(Material.CONCRETE)
         part, spots = urban_layout(rng, terrain, ground)
+    if hazards:
+        from .hazards import hazard_part
+
+        hazard_rng = np.random.default_rng([int(seed), 0x4A2A, 1 if style is Style.URBAN else 0])
+        part = Part.concat([part, hazard_part(hazard_rng, terrain, spots)])
     return _finish(style, int(seed), part, terrain, ground, spots)

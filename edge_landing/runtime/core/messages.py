@@ -12,6 +12,10 @@ import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude
 
+# Target.evidence prefixes (ARCHITECTURE.md §11).
+EVIDENCE_GEOMETRY = "geometry+network"
+EVIDENCE_NETWORK_ONLY = "network only"
+
 
 @dataclass(frozen=True)
 class Frame:
@@ -69,6 +73,21 @@ class Target:
     clearance_m: float = float("nan")
     confidence: float = 0.0
     timings_s: dict[str, float] = field(default_factory=dict)
+    # What made this spot trustworthy (ARCHITECTURE.md §11): "geometry+network" when the drone's own motion
+    # confirmed it, "network only" when that was allowed without confirmation; the geometry figures of the
+    # spot's cell (NaN without): baseline of the confirming frame pair, smallest obstacle height it could
+    # detect, seconds since it was confirmed. ``tracked_ned_m``: on a target that is not sent, the spot the
+    # network proposes and geometry has not confirmed (for overlays and logs only, never for the autopilot).
+    evidence: str = ""
+    geometry_baseline_m: float = float("nan")
+    geometry_detectable_m: float = float("nan")
+    geometry_age_s: float = float("nan")
+    tracked_ned_m: Optional[np.ndarray] = None
+
+    @property
+    def geometry_confirmed(self) -> bool:
+        """True when the drone's own motion confirmed this spot (only such spots may be committed, §12)."""
+        return self.valid and self.evidence.startswith(EVIDENCE_GEOMETRY)
 
     @staticmethod
     def none(frame_id: int, capture_time_s: float, reason: str, timings_s: Optional[dict[str, float]] = None) -> Target:

@@ -21,13 +21,21 @@ obstacle that appears on a cell seen clear for long outvotes it after decay_s·l
 Depth is required. HVO is optional: without it (a depth-only model) cells are judged by the depth slope and
 height spread alone and the confidence is multiplied by ``depth_only_confidence`` (degraded mode, said in
 the target's ``reason``).
+
+The network may propose, only geometry may confirm (ARCHITECTURE.md §11): with the camera image, the
+vehicle position and its height above ground, the motion stage (fusion.motion) measures heights above the
+ground from frame pairs and keeps per-cell evidence in NED (fusion.motion_grid). A spot is sent only when
+its clear disc is landable by the network *and* geometry-clear (measured to ``obstacle_height_m`` within
+``geometry_memory_s``, nothing seen standing out). Before that the network's spot is tracked
+(``Target.tracked_ned_m``) but the target is not valid, and says why; ``allow_unconfirmed`` sends it anyway
+(offline single images have no motion), marked ``evidence="network only"``.
 """
 from __future__ import annotations
 
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional
 
 import cv2
@@ -40,14 +48,23 @@ from edge_landing.runtime.core.camera import (
     ned_from_camera,
 )
 from edge_landing.runtime.core.errors import InputError
-from edge_landing.runtime.core.messages import Prediction, Target, VehicleState
+from edge_landing.runtime.core.messages import (
+    EVIDENCE_GEOMETRY,
+    EVIDENCE_NETWORK_ONLY,
+    Prediction,
+    Target,
+    VehicleState,
+)
 from edge_landing.runtime.fusion.grid import (
     CellRules,
     GridView,
     TopDownGrid,
+    clearance_from_mask,
     splat_samples,
 )
 from edge_landing.runtime.fusion.landing import Choice, KeptSpot, choose_spot
+from edge_landing.runtime.fusion.motion import CameraPose, MotionConfig, MotionStage
+from edge_landing.runtime.fusion.motion_grid import GeometryGrid, GeometryView
 from edge_landing.runtime.fusion.result import FusionResult
 
 log = logging.getLogger(__name__)
@@ -88,6 +105,10 @@ class FusionConfig:
     smoothing_max_step: float = 0.05              # ... except across steps > this share of the depth
     min_valid_depth_share: float = 0.05           # less valid depth than this: no target
     depth_only_confidence: float = 0.5            # confidence factor without HVO
+    obstacle_height_m: float = 0.5                # geometry must be able to see obstacles this tall to confirm
+    geometry_memory_s: float = 30.0               # how long a geometry confirmation holds (hover, descent)
+    allow_unconfirmed: bool = False               # send network-only spots when geometry cannot confirm
+    motion: MotionConfig = MotionConfig()
 
     def __post_init__(self) -> None:
         h, w = self.working_hw
@@ -115,6 +136,9 @@ class FusionConfig:
             raise InputError(f"fusion min_vote_share must be in (0, 1], got {self.min_vote_share}")
         if not 0 < self.max_slope_rad < math.pi / 2:
             raise InputError(f"fusion max_slope_rad must be in (0, pi/2), got {self.max_slope_rad}")
+        if not self.obstacle_height_m > 0 or not self.geometry_memory_s > 0:
+            raise InputError(f"fusion obstacle_height_m and geometry_memory_s must be > 0, got "
+                             f"{self.obstacle_height_m} and {self.geometry_memory_s}")
 
     @property
     def required_clearance_m(self) -> float:
@@ -167,27 +191,45 @@ class LandingFuser:
         self._mode: Optional[str] = None
         self._last_time_s: Optional[float] = None
         self._kept: Optional[KeptSpot] = None
+        self._tracked: Optional[KeptSpot] = None
+        self.motion = MotionStage(config.motion, intrinsics, mount)
+        self._geo_grid = GeometryGrid(config.cell_m, config.grid_radius_m, config.geometry_memory_s,
+                                      config.obstacle_height_m, config.motion.detect_sigmas)
+        self._geo: Optional[GeometryView] = None
+        self._geo_note = ""
 
     @property
     def grid(self) -> Optional[GridView]:
         """The grid of the last fused frame (landable mask, clearance map, cell centres), or None."""
         return self._view
 
+    @property
+    def geometry(self) -> Optional[GeometryView]:
+        """Motion-geometry evidence on the last frame's grid (clear / obstacle cells), or None."""
+        return self._geo
+
     def reset(self) -> None:
         self._grid.clear()
-        self._view, self._mode, self._last_time_s, self._kept = None, None, None, None
+        self._geo_grid.clear()
+        self.motion.reset()
+        self._view, self._mode, self._last_time_s, self._kept, self._tracked = None, None, None, None, None
+        self._geo = None
 
-    def fuse(self, pred: Prediction, state: VehicleState | None = None, now_s: float | None = None) -> FusionResult:
+    def fuse(self, pred: Prediction, state: VehicleState | None = None, now_s: float | None = None,
+             image: Optional[np.ndarray] = None) -> FusionResult:
         """:meth:`update` plus the grid this frame was judged on (None when the frame did not reach the grid)."""
         before = self._view
-        target = self.update(pred, state, now_s)
-        return FusionResult(target, self._view if self._view is not before else None)
+        target = self.update(pred, state, now_s, image)
+        reached = self._view is not before
+        return FusionResult(target, self._view if reached else None, self._geo if reached else None)
 
-    def update(self, pred: Prediction, state: VehicleState | None = None, now_s: float | None = None) -> Target:
+    def update(self, pred: Prediction, state: VehicleState | None = None, now_s: float | None = None,
+               image: Optional[np.ndarray] = None) -> Target:
+        """Fuse one frame. ``image``: the camera frame (RGB or grey uint8, any size) for motion geometry."""
         t0 = time.perf_counter()
         timings = dict(getattr(pred, "timings_s", None) or {})
         try:
-            target = self._update(pred, state, now_s, timings)
+            target = self._update(pred, state, now_s, timings, image)
         except Exception as exc:  # a flight loop must not die on one frame; the frame gets no target
             log.exception("fusion failed on frame %s", getattr(pred, "frame_id", "?"))
             target = Target.none(getattr(pred, "frame_id", -1), getattr(pred, "capture_time_s", float("nan")),
@@ -198,7 +240,7 @@ class LandingFuser:
     # -- the steps -------------------------------------------------------------------------------------
 
     def _update(self, pred: Prediction, state: Optional[VehicleState], now_s: Optional[float],
-                timings: dict[str, float]) -> Target:
+                timings: dict[str, float], image: Optional[np.ndarray] = None) -> Target:
         cfg = self.config
         fid, t_cap = pred.frame_id, float(pred.capture_time_s)
 
@@ -265,14 +307,87 @@ class LandingFuser:
             return none(f"no depth inside the grid: nothing valid within {cfg.grid_radius_m} m of the vehicle")
 
         here = (0.0, 0.0) if position is None else (float(position[0]), float(position[1]))
-        if self._kept is not None and t_cap - self._kept.time_s > cfg.keep_target_s:
-            self._kept = None
-        choice = choose_spot(self._view, here, cfg, self._kept)
-        if choice is None:
-            self._kept = None
+        for name in ("_kept", "_tracked"):
+            kept = getattr(self, name)
+            if kept is not None and t_cap - kept.time_s > cfg.keep_target_s:
+                setattr(self, name, None)
+        proposal = choose_spot(self._view, here, cfg, self._tracked)
+        focus = None if proposal is None else np.array([proposal.north_m, proposal.east_m, proposal.down_m])
+        t_geo = time.perf_counter()
+        self._geo = self._geometry(image, state, position, t_cap, focus)
+        timings["geometry"] = time.perf_counter() - t_geo
+        if proposal is None:
+            self._kept = self._tracked = None
             best = float(self._view.clearance_m.max())
             return none(f"no safe spot: best clearance {best:.2f} m < required {cfg.required_clearance_m:.2f} m")
-        return self._make_target(pred, choice, attitude, r_nc, position, hvo_h is not None, timings)
+        self._tracked = KeptSpot(proposal.north_m, proposal.east_m, t_cap)
+        if self._geo is not None:
+            confirmed_view = self._confirmed_view(self._view, self._geo)
+            choice = choose_spot(confirmed_view, here, cfg, self._kept)
+            if choice is not None:
+                return self._make_target(pred, choice, attitude, r_nc, position, hvo_h is not None, timings,
+                                         self._evidence(choice))
+        self._kept = None
+        why = self._unconfirmed_reason(proposal, position)
+        if cfg.allow_unconfirmed:
+            target = self._make_target(pred, proposal, attitude, r_nc, position, hvo_h is not None, timings,
+                                       f"{EVIDENCE_NETWORK_ONLY} ({why})")
+            self._kept = None              # an unconfirmed spot never becomes the committed one
+            return target
+        target = none(why)
+        point = np.array([proposal.north_m, proposal.east_m, proposal.down_m])
+        return replace(target, tracked_ned_m=point if position is not None else None, evidence=EVIDENCE_NETWORK_ONLY)
+
+    # -- geometry ---------------------------------------------------------------------------------------
+
+    def _geometry(self, image: Optional[np.ndarray], state: Optional[VehicleState], position: Optional[np.ndarray],
+                  t_cap: float, focus: Optional[np.ndarray]) -> Optional[GeometryView]:
+        """Run the motion stage on this frame (its window centred on the network's candidate ``focus``, NED)
+        and return the evidence aligned with the fusion grid (or None)."""
+        view = self._view
+        if view is None or position is None:
+            self._geo_note = "no vehicle position (geometry needs telemetry poses)"
+            return None
+        self._geo_grid.centre_on(float(position[0]), float(position[1]))
+        agl = None if state is None else state.agl_m
+        if image is None or agl is None or not math.isfinite(float(agl)):
+            self._geo_note = "no camera image for geometry" if image is None else "no height above ground"
+        else:
+            pose = CameraPose.of(self.mount, state.attitude if state else Attitude(), position, float(agl))
+            result = self.motion.update(np.asarray(image), pose, t_cap, focus)
+            if result is not None:
+                self._geo_grid.add(result)
+                self._geo_note = ""
+            else:
+                self._geo_note = f"no new geometry ({self.motion.last_reason})"
+        return self._geo_grid.view(view.north0_m, view.east0_m, (int(view.shape[0]), int(view.shape[1])), t_cap)
+
+    def _confirmed_view(self, view: GridView, geo: GeometryView) -> GridView:
+        landable = view.landable & geo.clear
+        return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
+
+    def _evidence(self, choice: Choice) -> str:
+        return EVIDENCE_GEOMETRY if not self._geo_note else f"{EVIDENCE_GEOMETRY}; {self._geo_note}"
+
+    def _unconfirmed_reason(self, proposal: Choice, position: Optional[np.ndarray]) -> str:
+        """Why the network's spot is not sent: what geometry knows about its cell."""
+        cfg = self.config
+        geo, view = self._geo, self._view
+        if geo is None or view is None or position is None:
+            return f"unconfirmed: {self._geo_note}"
+        cell = view.cell_of(proposal.north_m, proposal.east_m)
+        if cell is None:
+            return "unconfirmed: spot outside the geometry grid"
+        if geo.obstacle[cell]:
+            return f"unconfirmed: geometry sees an obstacle >= {cfg.obstacle_height_m:.1f} m at the network's spot"
+        det = float(geo.detectable_m[cell])
+        note = f" ({self._geo_note})" if self._geo_note else ""
+        if not math.isfinite(det):
+            return f"unconfirmed: geometry has not measured the spot yet{note}"
+        if det > cfg.obstacle_height_m:
+            return (f"unconfirmed: geometry detects {det:.2f} m > {cfg.obstacle_height_m:.2f} m there "
+                    f"(baseline too short for the range){note}")
+        return f"unconfirmed: geometry not clear around the spot (clearance){note}"
 
     def _prepare_grid(self, position: Optional[np.ndarray], t_cap: float) -> None:
         """Fresh grid in vehicle mode; in NED mode decay by elapsed time and move with the vehicle."""
@@ -333,7 +448,8 @@ class LandingFuser:
         return self._grid.add(samples[0], samples[1], samples[2], np.take(hor_px, pix), np.take(flat_px, pix), offset)
 
     def _make_target(self, pred: Prediction, choice: Choice, attitude: Attitude, r_nc: np.ndarray,
-                     position: Optional[np.ndarray], have_hvo: bool, timings: dict[str, float]) -> Target:
+                     position: Optional[np.ndarray], have_hvo: bool, timings: dict[str, float],
+                     evidence: str = "") -> Target:
         cfg = self.config
         point = np.array([choice.north_m, choice.east_m, choice.down_m], dtype=np.float64)
         rel = point - position if position is not None else point
@@ -348,6 +464,7 @@ class LandingFuser:
         confidence = (clear_used / cfg.clearance_saturation_m) * choice.flat_share
         confidence *= choice.horizontal_share if have_hvo else cfg.depth_only_confidence
         values = [*body, *cam, rng, size_x, size_y, choice.clearance_m, confidence]
+        base, det, age = self._geometry_figures(choice)
         if not all(math.isfinite(float(v)) for v in values) or rng <= 0:
             self._kept = None
             return Target.none(pred.frame_id, pred.capture_time_s, "no target: non-finite output", timings)
@@ -359,4 +476,13 @@ class LandingFuser:
             position_ned_m=point.copy() if position is not None else None,
             range_m=rng, angle_x_rad=math.atan2(cam[0], cam[2]), angle_y_rad=math.atan2(cam[1], cam[2]),
             size_x_rad=size_x, size_y_rad=size_y, clearance_m=float(choice.clearance_m),
-            confidence=float(min(max(confidence, 0.0), 1.0)), timings_s=timings)
+            confidence=float(min(max(confidence, 0.0), 1.0)), timings_s=timings, evidence=evidence,
+            geometry_baseline_m=base, geometry_detectable_m=det, geometry_age_s=age)
+
+    def _geometry_figures(self, choice: Choice) -> tuple[float, float, float]:
+        """(baseline, detectable height, age of confirmation) of the spot's geometry cell (NaN without)."""
+        geo, view = self._geo, self._view
+        cell = None if geo is None or view is None else view.cell_of(choice.north_m, choice.east_m)
+        if cell is None or geo is None:
+            return math.nan, math.nan, math.nan
+        return float(geo.baseline_m[cell]), float(geo.detectable_m[cell]), float(geo.clear_age_s[cell])

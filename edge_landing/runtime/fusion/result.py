@@ -6,12 +6,15 @@ from typing import Optional
 
 from edge_landing.runtime.core.messages import Target
 from edge_landing.runtime.fusion.grid import GridView
+from edge_landing.runtime.fusion.motion_grid import GeometryView
 
 
 @dataclass(frozen=True)
 class FusionResult:
     """One frame's fusion output. ``grid`` is the snapshot judged for this frame, or None when this frame did
-    not reach the grid (invalid prediction, stale frame, ...); readers never reach into the fuser for it."""
+    not reach the grid (invalid prediction, stale frame, ...); readers never reach into the fuser for it.
+    ``geometry``: the motion-geometry evidence on the same cells (ARCHITECTURE.md §11), or None."""
 
     target: Target
     grid: Optional[GridView] = None
+    geometry: Optional[GeometryView] = None

@@ -17,6 +17,7 @@ from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame, Prediction, Target, VehicleState
 from edge_landing.runtime.fusion.grid import GridView
+from edge_landing.runtime.fusion.motion_grid import GeometryView
 
 log = logging.getLogger(__name__)
 # RGB colours of horizontal / vertical / other (green = landable kind of surface).
@@ -37,14 +38,23 @@ def hvo_colours(rgb: np.ndarray, hvo_prob: Optional[np.ndarray], alpha: float = 
 
 
 def grid_inset(grid: Optional[GridView], target: Target, state: Optional[VehicleState],
-               size_px: int = INSET_PX) -> Optional[np.ndarray]:
-    """Top-down grid (north up): landable green, observed but not landable red, unobserved grey; target ring."""
+               size_px: int = INSET_PX, geometry: Optional[GeometryView] = None) -> Optional[np.ndarray]:
+    """Top-down grid (north up): unobserved grey, observed but not landable red, target ring.
+
+    Without geometry evidence landable cells are green. With it (ARCHITECTURE.md §11): landable and
+    confirmed by motion geometry green, landable by the network only (tracked, not confirmed) amber,
+    cells where the parallax showed an obstacle magenta; the network's unconfirmed spot a yellow cross."""
     if grid is None:
         return None
     rows, cols = grid.shape
     img: np.ndarray = np.full((rows, cols, 3), 60, dtype=np.uint8)
     img[grid.observed] = (170, 40, 40)
-    img[grid.landable] = (40, 190, 60)
+    if geometry is not None and geometry.clear.shape == grid.landable.shape:
+        img[grid.landable] = (215, 160, 30)
+        img[grid.landable & geometry.clear] = (40, 190, 60)
+        img[geometry.obstacle] = (220, 50, 220)
+    else:
+        img[grid.landable] = (40, 190, 60)
     img = np.ascontiguousarray(img[::-1])  # row 0 is the southmost: flip so north is up
     scale = size_px / max(rows, cols)
     img = cv2.resize(img, (max(1, int(cols * scale)), max(1, int(rows * scale))), interpolation=cv2.INTER_NEAREST)
@@ -56,7 +66,23 @@ def grid_inset(grid: Optional[GridView], target: Target, state: Optional[Vehicle
             radius = max(2, int(target.clearance_m / grid.cell_m * scale)) if math.isfinite(target.clearance_m) else 3
             cv2.circle(img, (int(col), int(row)), radius, (255, 255, 255), 1)
             cv2.drawMarker(img, (int(col), int(row)), (255, 255, 255), cv2.MARKER_CROSS, 6, 1)
+    if not target.valid and target.tracked_ned_m is not None and grid.frame == "ned":
+        col = (target.tracked_ned_m[1] - grid.east0_m) / grid.cell_m * scale
+        row = (rows - (target.tracked_ned_m[0] - grid.north0_m) / grid.cell_m) * scale
+        cv2.drawMarker(img, (int(col), int(row)), (255, 230, 0), cv2.MARKER_TILTED_CROSS, 6, 1)
     return img
+
+
+def evidence_line(target: Target) -> str:
+    """What vouched for this frame's spot (ARCHITECTURE.md §11), for the overlay's corner."""
+    if target.valid and target.evidence.startswith("geometry"):
+        return (f"geometry: baseline {target.geometry_baseline_m:.0f} m, "
+                f"sees >= {target.geometry_detectable_m:.2f} m")
+    if target.valid and target.evidence:
+        return "network only (not confirmed)"
+    if target.tracked_ned_m is not None:
+        return "tracked, not confirmed"
+    return ""
 
 
 def _target_ne(grid: GridView, target: Target, state: Optional[VehicleState]) -> Optional[np.ndarray]:
@@ -100,10 +126,11 @@ class OverlayRecorder:
         self._writer: Optional[Any] = None
 
     def write(self, frame: Frame, pred: Prediction, target: Target, state: Optional[VehicleState] = None,
-              grid: Optional[GridView] = None) -> None:
-        """One overlay frame; ``grid`` is the fusion grid this frame was judged on (FusionResult.grid)."""
+              grid: Optional[GridView] = None, geometry: Optional[GeometryView] = None) -> None:
+        """One overlay frame; ``grid`` is the fusion grid this frame was judged on (FusionResult.grid),
+        ``geometry`` the motion-geometry evidence on its cells (FusionResult.geometry)."""
         try:
-            img = self.render(frame, pred, target, state, grid)
+            img = self.render(frame, pred, target, state, grid, geometry)
         except Exception as exc:  # a drawing bug must not stop the flight loop: record the plain frame
             self.failures += 1
             log.debug("overlay failed on frame %d: %s", frame.frame_id, exc)
@@ -118,11 +145,15 @@ class OverlayRecorder:
         self.frames += 1
 
     def render(self, frame: Frame, pred: Prediction, target: Target, state: Optional[VehicleState],
-               grid: Optional[GridView] = None) -> np.ndarray:
+               grid: Optional[GridView] = None, geometry: Optional[GeometryView] = None) -> np.ndarray:
         img = hvo_colours(frame.rgb, pred.hvo_prob)
         draw_target(img, target, self.intrinsics, self.mount)
         inset = grid_inset(grid, target, state,
-                           size_px=min(INSET_PX, img.shape[0] // 2, img.shape[1] // 2))
+                           size_px=min(INSET_PX, img.shape[0] // 2, img.shape[1] // 2), geometry=geometry)
+        said = evidence_line(target)
+        if said:
+            cv2.putText(img, said, (6, img.shape[0] - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1,
+                        cv2.LINE_AA)
         if inset is not None:
             h, w = inset.shape[:2]
             x0 = img.shape[1] - w

@@ -242,7 +242,10 @@ class SimReader(Reader):
 
     FLIGHT_FRAMES = 200
 
-    DEFAULT_SIZE = (160, 120)  # renders at about 15 frames/s on one busy core
+    # 640×480: motion geometry (ARCHITECTURE.md §11) needs the camera's own pixels to confirm a spot; at
+    # 160×120 a DIS patch covers > 1.5 m of ground beyond ~15 m and nothing is ever confirmed. Renders
+    # 200 frames in about a minute on one busy core.
+    DEFAULT_SIZE = (640, 480)
 
     def __init__(self, config: SourceConfig):
         from edge_landing.runtime.core.errors import require_extra

@@ -162,14 +162,14 @@ class Pipeline:
         if state is not None and not self.options.world_grid:
             fusion_state = replace(state, position_ned_m=None)
         try:
-            result = self.fuse(pred, fusion_state, time.monotonic())
+            result = self.fuse(pred, fusion_state, time.monotonic(), frame.rgb)  # image: motion geometry
         except Exception as exc:  # a fusion bug must not stop the drone's loop: no target, and why
             log.exception("fusion failed on frame %d", frame.frame_id)
             result = FusionResult(Target.none(frame.frame_id, frame.capture_time_s, f"fusion fault: {exc}"))
         target = result.target
         if target.valid and target.position_ned_m is None and state is not None and state.position_ned_m is not None:
             target = replace(target, position_ned_m=target_ned(target, state))  # vehicle position + rotated body
-        return FusionResult(target, result.grid), pred
+        return FusionResult(target, result.grid, result.geometry), pred
 
     def _finish(self, work: FrameWork) -> None:
         frame, match = work.frame, work.telemetry
@@ -203,7 +203,7 @@ class Pipeline:
         s.sent += sent
         lap("link")
         if self.recorder is not None:
-            self.recorder.write(frame, work.pred, target, match.state, result.grid)
+            self.recorder.write(frame, work.pred, target, match.state, result.grid, result.geometry)
             lap("record")
         s.times.add("total", time.perf_counter() - work.started_s)
         self.last_target = target

@@ -8,8 +8,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Dict, Optional, Protocol, Tuple
 
+import numpy as np
+
 from edge_landing.runtime.core.messages import Frame, Prediction, Target, VehicleState
 from edge_landing.runtime.fusion.grid import GridView
+from edge_landing.runtime.fusion.motion_grid import GeometryView
 from edge_landing.runtime.fusion.result import FusionResult
 from edge_landing.runtime.io.telemetry import TelemetryMatch
 
@@ -56,7 +59,7 @@ class Recorder(Protocol):
     """The overlay video (or anything that wants every frame with its outcome)."""
 
     def write(self, frame: Frame, pred: Prediction, target: Target, state: Optional[VehicleState] = None,
-              grid: Optional[GridView] = None) -> None: ...
+              grid: Optional[GridView] = None, geometry: Optional[GeometryView] = None) -> None: ...
 
 
 class Inference(Protocol):
@@ -66,7 +69,8 @@ class Inference(Protocol):
 
 
 class Fuse(Protocol):
-    def __call__(self, pred: Prediction, state: Optional[VehicleState], now_s: float) -> FusionResult: ...
+    def __call__(self, pred: Prediction, state: Optional[VehicleState], now_s: float,
+                 image: Optional[np.ndarray] = None) -> FusionResult: ...
 
 
 @dataclass(frozen=True)

@@ -52,6 +52,9 @@ class ContinuityConfig:
                                          # it: in the closed loop from 40 m the grid lost all clear ground
                                          # around ground-truth safe spots 15 times per landing at 45-65 m and
                                          # 14 times at 20-30 m, while every target it sent was safe
+    # Only spots the drone's own motion confirmed are committed (ARCHITECTURE.md §11): a network-only target
+    # (sent under --allow-unconfirmed) is passed on but never re-sent from memory, unless this is set too.
+    commit_unconfirmed: bool = False
 
 
 @dataclass(frozen=True)
@@ -60,6 +63,7 @@ class CommittedSpot:
     clearance_m: float
     confidence: float
     confirmed_s: float            # capture time of the last target that confirmed it
+    evidence: str = ""            # what vouched for it when it was last confirmed (Target.evidence)
 
 
 class Continuity:
@@ -93,6 +97,8 @@ class Continuity:
             if beyond:
                 self._candidate, self._candidate_frames = None, 0
                 return Target.none(target.frame_id, target.capture_time_s, beyond, target.timings_s), ""
+        if target.valid and not (target.geometry_confirmed or self.config.commit_unconfirmed):
+            return target, ""  # a network-only target (--allow-unconfirmed) is passed on, never committed
         if target.valid:
             said = self._observe(target, state)
             if spot is None or self.spot is not spot:  # nothing committed before, or it was confirmed just now
@@ -118,7 +124,7 @@ class Continuity:
                       position_body_frd_m=body, position_ned_m=spot.ned_m.copy(), range_m=rng,
                       size_x_rad=2.0 * math.atan2(spot.clearance_m, rng), size_y_rad=2.0 * math.atan2(spot.clearance_m, rng),
                       clearance_m=spot.clearance_m, confidence=spot.confidence * self.config.held_confidence,
-                      timings_s=target.timings_s)
+                      timings_s=target.timings_s, evidence=f"{spot.evidence} (held)" if spot.evidence else "")
         return held, ""
 
     def _beyond_cone(self, target: Target, state: VehicleState) -> str:
@@ -156,14 +162,14 @@ class Continuity:
         r = max(self.config.confirm_radius_m, self.config.confirm_range_share * range_m)
         if self.spot is not None:
             if float(np.linalg.norm(ned[:2] - self.spot.ned_m[:2])) <= r:  # confirmed: follow the fresh estimate
-                self.spot = CommittedSpot(ned, target.clearance_m, target.confidence, target.capture_time_s)
+                self.spot = CommittedSpot(ned, target.clearance_m, target.confidence, target.capture_time_s, target.evidence)
             return ""  # elsewhere: the committed spot stays until it is dropped
         if self._candidate is not None and float(np.linalg.norm(ned[:2] - self._candidate[:2])) <= r:
             self._candidate_frames += 1
         else:
             self._candidate, self._candidate_frames = ned, 1
         if self._candidate_frames >= self.config.commit_frames:
-            self.spot = CommittedSpot(ned, target.clearance_m, target.confidence, target.capture_time_s)
+            self.spot = CommittedSpot(ned, target.clearance_m, target.confidence, target.capture_time_s, target.evidence)
             self._candidate, self._candidate_frames = None, 0
         return ""
 

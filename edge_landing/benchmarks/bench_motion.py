@@ -1,0 +1,115 @@
+"""Cost of the motion-geometry stage per frame, and its share of the pipeline (ARCHITECTURE.md §9, §11).
+
+Renders the first frames of an ``edge-sim --flight`` flight (approach, the vehicle moving) at each camera
+size, then times, on the same frames: the motion stage alone (``MotionStage.update``: keyframe pick,
+plane warp, DIS on the window cropped around the network's spot, heights), the whole fusion with it
+(``LandingFuser.update`` with the image) and the shipped model's inference, with ``--threads`` threads
+for OpenCV and ONNX Runtime, after a warm-up. Percentiles are over frames.
+
+    python -m edge_landing.benchmarks.bench_motion --sizes 160x120 320x240 640x480
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import cv2
+import numpy as np
+
+from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.runtime.core.camera import Mount
+from edge_landing.runtime.core.messages import VehicleState
+from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+from edge_landing.runtime.fusion.motion import CameraPose
+
+
+def _pct(ms: list[float]) -> dict[str, float]:
+    a = np.asarray(ms)
+    return {"p50": float(np.percentile(a, 50)), "p90": float(np.percentile(a, 90)), "p99": float(np.percentile(a, 99))}
+
+
+def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, style: str, seed: int
+               ) -> dict[str, Any]:
+    from edge_landing import sim
+    from edge_landing.benchmarks.lying_model import lying_prediction
+    from edge_landing.runtime.models import default_model_path
+    from edge_landing.runtime.perception.inference import OnnxModel
+    from edge_landing.sim.generate import SimConfig, render_sample, vehicle_samples
+
+    scfg = SimConfig(out=Path("."), frames=200, style=sim.Style.from_string(style), seed=seed, flight=True,
+                     fps=10.0, width=width, height=height)
+    world = sim.build_world(scfg.style, seed, hazards=True)
+    mount, intr = Mount(), scfg.intrinsics
+    renderer = sim.Renderer(world, intr, mount)
+    shots = []
+    for k, s in enumerate(vehicle_samples(scfg, world)):
+        if k >= warmup + frames:
+            break
+        shots.append((s, render_sample(scfg, k, s, renderer).rgb))
+    cv2.setNumThreads(threads)
+    fuser = LandingFuser(FusionConfig(), intr, mount)
+    model = OnnxModel.load(default_model_path(), threads)
+    stage_ms, fusion_ms, model_ms = [], [], []
+    for k, (s, rgb) in enumerate(shots):
+        state = VehicleState(s.t_s, s.attitude, s.position_ned_m.copy(), s.agl_m, "sim")
+        pred = lying_prediction(intr, mount, state, k)
+        t0 = time.perf_counter()
+        target = fuser.update(pred, state, s.t_s, rgb)
+        t1 = time.perf_counter()
+        model.predict(rgb, k, s.t_s)
+        t2 = time.perf_counter()
+        if k >= warmup:
+            fusion_ms.append(1e3 * (t1 - t0))
+            model_ms.append(1e3 * (t2 - t1))
+            stage_ms.append(1e3 * target.timings_s.get("geometry", float("nan")))
+    # The stage alone, on the same frames, from a fresh keyframe ring (no fusion around it).
+    alone = LandingFuser(FusionConfig(), intr, mount).motion
+    alone_ms = []
+    for k, (s, rgb) in enumerate(shots):
+        pose = CameraPose.of(mount, s.attitude, s.position_ned_m, s.agl_m)
+        t0 = time.perf_counter()
+        alone.update(rgb, pose, s.t_s)
+        if k >= warmup:
+            alone_ms.append(1e3 * (time.perf_counter() - t0))
+    window = list(alone.config.window_hw)
+    stage, total = _pct(stage_ms), float(np.median(np.asarray(fusion_ms) + np.asarray(model_ms)))
+    return {"size": f"{width}x{height}", "window_hw": window, "frames": frames, "threads": threads,
+            "stage_in_fusion_ms": stage, "stage_alone_ms": _pct(alone_ms), "fusion_ms": _pct(fusion_ms),
+            "model_ms": _pct(model_ms), "stage_share_of_model_plus_fusion": stage["p50"] / total}
+
+
+def _main(argv: Optional[Sequence[str]] = None) -> int:
+    p = CliParser(prog="bench_motion", description=__doc__.split("\n\n")[0],
+                  formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--sizes", nargs="+", default=["160x120", "320x240", "640x480"], help="camera sizes WxH")
+    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--warmup", type=int, default=10)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--style", default="suburban")
+    p.add_argument("--seed", type=int, default=41)
+    p.add_argument("--json", help="write the results here")
+    a = p.parse_args(argv)
+    results = []
+    for size in a.sizes:
+        w, h = (int(v) for v in size.lower().split("x"))
+        r = bench_size(w, h, a.frames, a.warmup, a.threads, a.style, a.seed)
+        results.append(r)
+        s, f, m = r["stage_alone_ms"], r["fusion_ms"], r["model_ms"]
+        print(f"{r['size']:>8s} (DIS window <= {r['window_hw'][0]}x{r['window_hw'][1]}): stage p50 {s['p50']:.2f} "
+              f"p90 {s['p90']:.2f} p99 {s['p99']:.2f} ms; fusion with it p50 {f['p50']:.2f} ms, model p50 "
+              f"{m['p50']:.2f} ms; stage = {100 * r['stage_share_of_model_plus_fusion']:.0f} % of model + fusion",
+              flush=True)
+    if a.json:
+        Path(a.json).write_text(json.dumps(results, indent=1))
+    return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    return run_cli(_main, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,183 @@
+"""Can a lying network land the drone on a car? Replays synthetic flights through fusion (ARCHITECTURE.md §11).
+
+For each frame of an ``edge-sim --flight`` flight (rendered on the fly, poses as telemetry):
+- ``lying``: a "model" that claims everything is flat horizontal ground: depth = the depth of the horizontal
+  plane at the telemetry height above ground, HVO = horizontal everywhere;
+- ``shipped``: the shipped EdgeNet with the in-flight altitude scale, as edge-run runs it.
+Each is fused twice: with motion geometry (the default: only geometry-confirmed spots are sent) and without
+it (the network's spot is sent, as before geometry existed). Every sent target is judged by ray casting
+against the world (benchmarks/landing_truth.check_target). Also: motion geometry alone, per cell, against
+the world's heights (recall of obstacles >= 1 m among cells it measured to <= 1 m, at 30-60 m AGL).
+
+    python -m edge_landing.benchmarks.lying_model --style urban --seed 41 --frames 200 --models lying shipped
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.runtime.core.camera import Intrinsics, Mount, ned_from_camera
+from edge_landing.runtime.core.messages import Prediction, VehicleState
+from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    style: str = "suburban"
+    seed: int = 41
+    frames: int = 200
+    fps: float = 10.0
+    models: tuple[str, ...] = ("lying",)
+    obstacle_height_m: float = 0.5
+    recall_every: int = 10            # frames between per-cell geometry checks
+    hazards: bool = True              # hazard-rich worlds (sim.hazards)
+    width: int = 320                  # camera size: the networks see it resized, motion geometry crops it
+    height: int = 240
+
+
+def lying_prediction(intr: Intrinsics, mount: Mount, state: VehicleState, frame_id: int) -> Prediction:
+    """Flat horizontal ground everywhere: planar depth of the plane ``agl_m`` below, P(horizontal) = 1."""
+    rays = intr.pixel_rays().reshape(-1, 3).astype(np.float64)
+    down_cam = ned_from_camera(mount, state.attitude).T @ np.array([0.0, 0.0, 1.0])
+    nx = rays @ down_cam
+    with np.errstate(divide="ignore"):
+        depth = np.where(nx > 1e-6, float(state.agl_m or 0.0) / nx, np.nan).reshape(intr.height, intr.width)
+    hvo = np.zeros((intr.height, intr.width, 3), np.float32)
+    hvo[..., 0] = 1.0
+    return Prediction(frame_id, state.time_s, depth.astype(np.float32), hvo)
+
+
+class _Shipped:
+    def __init__(self, intr: Intrinsics, mount: Mount):
+        from edge_landing.runtime.models import default_model_path
+        from edge_landing.runtime.perception.inference import OnnxModel
+        from edge_landing.runtime.perception.scale import AltitudeScaleEstimator
+        from edge_landing.runtime.pipeline import ScaleStage
+
+        self.model = OnnxModel.load(default_model_path(), 2)
+        self.scale = ScaleStage(None, AltitudeScaleEstimator(), intr, mount)
+
+    def __call__(self, rgb: np.ndarray, state: VehicleState, frame_id: int) -> Prediction:
+        return self.scale.apply(self.model.predict(rgb, frame_id, state.time_s), state)
+
+
+def cell_recall(world: Any, fuser: LandingFuser, agl_m: float, min_height_m: float = 1.0
+                ) -> Optional[tuple[int, int, int, int]]:
+    """(obstacle cells measured, of them marked obstacle, flat cells measured, of them marked obstacle)."""
+    geo, view = fuser.geometry, fuser.grid
+    if geo is None or view is None or not 30.0 <= agl_m <= 60.0:
+        return None
+    measured = np.isfinite(geo.detectable_m) & (geo.detectable_m <= min_height_m)
+    if not measured.any():
+        return (0, 0, 0, 0)
+    rows, cols = np.nonzero(measured)
+    north = view.north0_m + (rows + 0.5) * view.cell_m
+    east = view.east0_m + (cols + 0.5) * view.cell_m
+    height = world.terrain.z_at(north, east) - world.surface_z(north, east)
+    tall, flat = height >= min_height_m, height < 0.05
+    marked = geo.obstacle[rows, cols]
+    return int(tall.sum()), int((marked & tall).sum()), int(flat.sum()), int((marked & flat).sum())
+
+
+def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
+    from edge_landing import sim
+    from edge_landing.benchmarks.landing_truth import TruthConfig, check_target
+    from edge_landing.sim.generate import SimConfig, render_sample, vehicle_samples
+
+    scfg = SimConfig(out=Path("."), frames=cfg.frames, style=sim.Style.from_string(cfg.style), seed=cfg.seed,
+                     flight=True, fps=cfg.fps, width=cfg.width, height=cfg.height)
+    world = sim.build_world(scfg.style, cfg.seed, hazards=cfg.hazards)
+    mount = Mount()
+    intr = scfg.intrinsics
+    renderer = sim.Renderer(world, intr, mount)
+    fusion = FusionConfig(obstacle_height_m=cfg.obstacle_height_m)
+    truth = TruthConfig(log="", clearance_m=fusion.required_clearance_m)
+    runs: dict[str, Any] = {}
+    for name in cfg.models:
+        runs[name] = {"geometry": LandingFuser(fusion, intr, mount),
+                      "network": LandingFuser(replace(fusion, allow_unconfirmed=True), intr, mount),
+                      "model": _Shipped(intr, mount) if name == "shipped" else None}
+    stats: dict[str, Any] = {name: {kind: {"targets": 0, "safe": 0, "failures": []} for kind in ("geometry", "network")}
+             for name in cfg.models}
+    recall = {name: [0, 0, 0, 0] for name in cfg.models}
+    geo_ms: list[float] = []
+    for k, s in enumerate(vehicle_samples(scfg, world)):
+        r = render_sample(scfg, k, s, renderer)
+        state = VehicleState(s.t_s, s.attitude, s.position_ned_m.copy(), s.agl_m, "sim")
+        for name, run in runs.items():
+            pred = lying_prediction(intr, mount, state, k) if run["model"] is None else run["model"](r.rgb, state, k)
+            for kind in ("geometry", "network"):
+                fuser = run[kind]
+                target = fuser.update(pred, state, s.t_s, r.rgb if kind == "geometry" else None)
+                if kind == "geometry" and "geometry" in target.timings_s:
+                    geo_ms.append(1e3 * target.timings_s["geometry"])
+                if target.valid and target.position_ned_m is not None:
+                    st = stats[name][kind]
+                    st["targets"] += 1
+                    ok, why = check_target(world, float(target.position_ned_m[0]), float(target.position_ned_m[1]),
+                                           truth)
+                    st["safe"] += ok
+                    if not ok:
+                        st["failures"].append({"frame": k, "why": why})
+            if k % cfg.recall_every == 0:
+                counts = cell_recall(world, run["geometry"], s.agl_m)
+                if counts is not None:
+                    recall[name] = [a + b for a, b in zip(recall[name], counts)]
+        if progress and k % 20 == 0:
+            print(f"  frame {k}/{cfg.frames}", flush=True)
+    return {"config": cfg.__dict__, "frames": cfg.frames, "stats": stats, "recall": recall,
+            "geometry_ms_p50": float(np.median(geo_ms)) if geo_ms else math.nan}
+
+
+def _summary(result: dict[str, Any]) -> str:
+    n = result["frames"]
+    lines = []
+    for name, kinds in result["stats"].items():
+        for kind, st in kinds.items():
+            share = st["safe"] / st["targets"] if st["targets"] else math.nan
+            lines.append(f"{name:8s} {kind:9s} targets on {st['targets']}/{n} frames ({100 * st['targets'] / n:.0f} %), "
+                         f"safe {st['safe']}/{st['targets']} ({100 * share:.1f} %)")
+        tall, hit, flat, fa = result["recall"][name]
+        lines.append(f"{name:8s} geometry cells (30-60 m AGL, measured to <= 1 m): obstacles >= 1 m marked "
+                     f"{hit}/{tall} ({100 * hit / max(tall, 1):.1f} %), flat cells marked {fa}/{flat} "
+                     f"({100 * fa / max(flat, 1):.1f} %)")
+    lines.append(f"geometry stage p50 {result['geometry_ms_p50']:.2f} ms per frame (inside fusion)")
+    return "\n".join(lines)
+
+
+def _main(argv: Optional[Sequence[str]] = None) -> int:
+    p = CliParser(prog="lying_model", description=__doc__.split("\n\n")[0],
+                  formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--style", default="suburban")
+    p.add_argument("--seed", type=int, default=41)
+    p.add_argument("--frames", type=int, default=200)
+    p.add_argument("--models", nargs="+", default=["lying"], choices=["lying", "shipped"])
+    p.add_argument("--obstacle-height", type=float, default=0.5)
+    p.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"), help="camera size")
+    p.add_argument("--no-hazards", action="store_true", help="the plain towns (no sim.hazards)")
+    p.add_argument("--json", help="write the result here")
+    a = p.parse_args(argv)
+    result = replay(ReplayConfig(a.style, a.seed, a.frames, models=tuple(a.models),
+                                 obstacle_height_m=a.obstacle_height, width=a.size[0], height=a.size[1],
+                                 hazards=not a.no_hazards),
+                    progress=True)
+    print(f"{a.style} seed {a.seed}, {a.frames} frames, camera {a.size[0]}x{a.size[1]}")
+    print(_summary(result))
+    if a.json:
+        Path(a.json).write_text(json.dumps(result, indent=1))
+    return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    return run_cli(_main, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

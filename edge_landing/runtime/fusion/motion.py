@@ -1,0 +1,455 @@
+"""Motion geometry: heights above the ground from the drone's own motion, independent of the network (ARCHITECTURE.md §11).
+
+Between the current frame (c) and an earlier one (r) with known poses, points of the ground plane map by the
+plane-induced homography; a point ``h`` above the plane is displaced from that prediction along the
+epipolar direction. Frames: camera = OpenCV (x right, y down, z forward), world = local NED.
+
+Derivation (normalised image coordinates, camera c = "1", camera r = "2"):
+  X_r = R X_c + t with R = R_r^T R_c, t = R_r^T (p_c - p_r) (R_x: NED <- camera, p_x: camera position).
+  Ground plane in camera c: n^T X = d, n = R_c^T (0, 0, 1) (world down in camera c), d = height above it.
+  A point at height h above the plane: n^T X_c = d - h. With H_e = R + t n^T / d:
+      X_r = H_e X_c + t h / d.
+  Writing X_c = λ x_c (x_c = (x, y, 1), λ = (d - h) / n^T x_c) and Z0 = the reference-frame depth of the
+  *plane* point on the same ray (h = 0), the projections differ exactly by
+      x_r - π(H_e x_c) = h / (d - h) · (t_xy - x_r t_z) / Z0 = s · g,
+  so s = r·g / |g|² and h = d s / (1 + s). ``g`` is the parallax a point would show per unit of h/(d-h):
+  |g| ≈ |t⊥| / Z0, the baseline across the line of sight over the range. With flow noise σ pixels
+  (σ_n = σ / f normalised), h has σ_h ≈ d σ_n / |g| near the ground, and the smallest height this pair
+  could have detected is ``detect_sigmas`` · σ_h.
+
+Flow: the reference image is first warped by the plane homography into the current view, so the flow
+DIS has to find is only the residual parallax (small for the ground even with tens of metres of
+baseline). The height of the ground itself is the terrain (slopes of a few degrees read as metres at
+100 m): a smooth quadratic surface is fitted robustly to the heights and removed, so ``h`` is the height
+above the *local* ground. Pure numpy/OpenCV, no I/O; memory is bounded in time (``history_s``) and count.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Deque, Optional
+
+import cv2
+import numpy as np
+
+from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount, ned_from_camera
+from edge_landing.runtime.core.choices import ChoiceEnum
+from edge_landing.runtime.core.errors import InputError
+
+
+class DisPreset(ChoiceEnum):
+    ULTRAFAST = "ultrafast"
+    FAST = "fast"
+    MEDIUM = "medium"
+
+    @classmethod
+    def _label(cls) -> str:
+        return "DIS optical flow preset"
+
+    def create(self) -> cv2.DISOpticalFlow:
+        preset = {DisPreset.ULTRAFAST: cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+                  DisPreset.FAST: cv2.DISOPTICAL_FLOW_PRESET_FAST,
+                  DisPreset.MEDIUM: cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}[self]
+        return cv2.DISOpticalFlow.create(preset)
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Motion-geometry settings. Pixels at the frame's own size (up to ``max_width_px``), metres, seconds."""
+
+    # DIS runs on at most this many pixels per frame (height, width): the ground band of the frame at its own
+    # resolution, cropped around the candidate spot when the band is larger. Full resolution matters: the
+    # parallax of a 1 m obstacle at 40-60 m height is a fraction of a pixel at 160 px across (docs §11).
+    window_hw: tuple[int, int] = (120, 160)
+    max_width_px: int = 1280             # wider frames are downscaled first (bounds the keyframe memory)
+    history_s: float = 8.0               # keyframes older than this are dropped ...
+    max_frames: int = 16                 # ... and at most this many are kept (thinned to history_s / max_frames)
+    flow_noise_px: float = 0.2           # floor of the residual flow's 1-σ error (each pair measures its own)
+    detect_sigmas: float = 3.0           # a height is detectable at this many σ
+    enough_detect_m: float = 0.25        # the newest keyframe detecting this is preferred to longer baselines
+    dis_preset: DisPreset = DisPreset.FAST
+    dis_patch_px: int = 4                # DIS patch side and stride: the patch's footprint on the ground
+    dis_patch_stride_px: int = 2         # bounds the narrowest feature resolved (max_patch_footprint_m)
+    dis_refine_iterations: int = 5       # variational refinement (the fast preset's 1 leaves a ~0.1 px bias)
+    dis_finest_scale: int = 0            # pyramid level DIS stops at (1 = half size: sub-pixel parallax of
+                                         # small obstacles survives; 2 halves a car-sized parallax)
+    max_range_m: float = 80.0            # ground farther than this (horizontally) from the vehicle is skipped
+    # DIS smooths over its patch: a gap or an obstacle narrower than the patch's footprint on the ground
+    # (patch px × range / f) reads at a fraction of its height (1.6 m gaps between packed cars vanished at
+    # 1.9 m footprint). Pixels with a larger footprint still report obstacles but cannot confirm.
+    max_patch_footprint_m: float = 1.5
+    min_overlap: float = 0.5             # share of probe points the reference frame must see
+    max_photometric_error: float = 24.0  # grey levels: larger residual after flow = no evidence (occlusion)
+    max_cross_parallax_px: float = 1.5   # residual across the epipolar direction beyond this = no evidence
+    max_sigma_h_m: float = 1.0           # pixels noisier than this are left out of the terrain fit
+    min_agl_m: float = 2.0               # below this the plane model is not used
+    def __post_init__(self) -> None:
+        h, w = self.window_hw
+        if h < 32 or w < 32 or self.max_width_px < 32:
+            raise InputError(f"motion window must be at least 32x32 pixels, got {h}x{w} (max width "
+                             f"{self.max_width_px})")
+        for name in ("history_s", "flow_noise_px", "detect_sigmas", "max_range_m", "max_photometric_error",
+                     "max_cross_parallax_px", "max_sigma_h_m", "min_agl_m", "enough_detect_m",
+                     "max_patch_footprint_m"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"motion {name} must be > 0, got {getattr(self, name)}")
+        if self.max_frames < 2:
+            raise InputError(f"motion max_frames must be at least 2, got {self.max_frames}")
+        if not 0 < self.min_overlap <= 1:
+            raise InputError(f"motion min_overlap must be in (0, 1], got {self.min_overlap}")
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    """Camera pose at capture: NED <- camera rotation, camera position (NED, m), height above the ground (m)."""
+
+    r_nc: np.ndarray
+    position_ned_m: np.ndarray
+    agl_m: float
+
+    @staticmethod
+    def of(mount: Mount, attitude: Attitude, position_ned_m: np.ndarray, agl_m: float) -> CameraPose:
+        return CameraPose(ned_from_camera(mount, attitude), np.asarray(position_ned_m, np.float64).reshape(3),
+                          float(agl_m))
+
+
+@dataclass(frozen=True)
+class _Stored:
+    time_s: float
+    grey: np.ndarray
+    pose: CameraPose
+
+
+@dataclass(frozen=True)
+class ParallaxResult:
+    """Per-pixel evidence of one frame pair on the window ``rows`` × ``cols`` of the frame at the stage's size.
+
+    ``height_m``: height above the local ground (NaN where there is no evidence); ``detectable_m``: the
+    smallest height this pair could have detected at that pixel (inf where no evidence); ``ned_m``: the
+    pixel's point in local NED (3×H×W, at its measured height). ``baseline_m``: distance between the two
+    camera centres; ``reference_age_s``: how old the reference frame was.
+    """
+
+    time_s: float
+    rows: slice
+    cols: slice
+    height_m: np.ndarray
+    sigma_m: np.ndarray
+    detectable_m: np.ndarray
+    ned_m: np.ndarray
+    baseline_m: float
+    reference_age_s: float
+    ground_fit: np.ndarray           # quadratic terrain coefficients (1, n, e, n², ne, e²), n/e in 100 m
+    flow_noise_px: float = float("nan")  # the flow noise used: measured across the epipolar lines, floored
+
+
+def plane_homography(k: np.ndarray, cur: CameraPose, ref: CameraPose) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                               np.ndarray, float]:
+    """(H pixel c -> r, R, t, n, d): the ground plane's homography between current and reference frames.
+
+    ``k`` is the 3×3 intrinsic matrix in OpenCV's pixel-centre convention. The plane is horizontal at
+    the current frame's height above ground below the current camera.
+    """
+    rot = ref.r_nc.T @ cur.r_nc
+    t = ref.r_nc.T @ (cur.position_ned_m - ref.position_ned_m)
+    n = cur.r_nc.T @ np.array([0.0, 0.0, 1.0])
+    d = cur.agl_m
+    h_norm = rot + np.outer(t, n) / d
+    return k @ h_norm @ np.linalg.inv(k), rot, t, n, d
+
+
+def parallax_height(x_c: np.ndarray, x_r: np.ndarray, rot: np.ndarray, t: np.ndarray, n: np.ndarray, d: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Heights above the plane from matched normalised points (2×N each): (h, |g|, cross-epipolar residual).
+
+    ``x_r`` is where the current frame's point ``x_c`` was found in the reference frame. See the module
+    docstring for the derivation: r = x_r - π(H_e x_c) = s·g, h = d·s/(1+s).
+    """
+    xh = np.vstack([x_c, np.ones((1, x_c.shape[1]), x_c.dtype)])
+    nx = n @ xh                                               # > 0: the ray meets the plane ahead
+    q = (rot + np.outer(t, n) / d) @ xh                       # H_e x_c (homogeneous, reference frame)
+    pred = q[:2] / q[2]
+    z0 = d / nx * q[2]                                        # reference depth of the plane point on this ray
+    g = (t[:2, None] - x_r * t[2]) / z0
+    g2 = np.einsum("ij,ij->j", g, g)
+    r = x_r - pred
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = np.einsum("ij,ij->j", r, g) / g2
+        cross = np.abs(r[0] * g[1] - r[1] * g[0]) / np.sqrt(g2)
+        h = d * s / (1.0 + s)
+    bad = ~(nx > 0) | ~(z0 > 0) | ~(g2 > 0)
+    h[bad] = np.nan
+    return h, np.sqrt(np.where(bad, 0.0, g2)), cross
+
+
+class MotionStage:
+    """Keeps a bounded ring of grey keyframes with poses; ``update`` measures heights against the best one."""
+
+    def __init__(self, config: MotionConfig, intrinsics: Intrinsics, mount: Mount):
+        self.config = config
+        self.mount = mount
+        scale = min(1.0, config.max_width_px / intrinsics.width)
+        w, h = max(32, int(round(intrinsics.width * scale))), max(32, int(round(intrinsics.height * scale)))
+        self.size_hw = (h, w)
+        self.intrinsics = intrinsics.scaled(w, h)
+        i = self.intrinsics
+        # OpenCV's warps and flows put pixel centres at integers; the runtime's rays at +0.5.
+        self.k_cv = np.array([[i.fx, 0.0, i.cx - 0.5], [0.0, i.fy, i.cy - 0.5], [0.0, 0.0, 1.0]])
+        self._undistort = None
+        if i.dist:   # the plane model is pinhole: undistort frames once into the same camera without distortion
+            self._undistort = cv2.initUndistortRectifyMap(self.k_cv, np.asarray(i.dist, np.float64), None,
+                                                          self.k_cv, (w, h), cv2.CV_16SC2)
+        self._history: Deque[_Stored] = deque()
+        self._dis = config.dis_preset.create()
+        self._dis.setVariationalRefinementIterations(config.dis_refine_iterations)
+        self._dis.setFinestScale(config.dis_finest_scale)
+        self._dis.setPatchSize(config.dis_patch_px)
+        self._dis.setPatchStride(config.dis_patch_stride_px)
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        self._pix = (xx, yy)
+        self._norm = ((xx - self.k_cv[0, 2]) / i.fx, (yy - self.k_cv[1, 2]) / i.fy)
+        self.last: Optional[ParallaxResult] = None
+        self.last_reason = ""
+
+    def reset(self) -> None:
+        self._history.clear()
+        self.last, self.last_reason = None, ""
+
+    def grey(self, image: np.ndarray) -> np.ndarray:
+        """RGB (or grey) uint8 image at any size -> grey uint8 at the stage's size, undistorted."""
+        g = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        h, w = self.size_hw
+        if g.shape != (h, w):
+            g = cv2.resize(g, (w, h), interpolation=cv2.INTER_AREA)
+        if g.dtype != np.uint8:
+            g = np.clip(g, 0, 255).astype(np.uint8)
+        if self._undistort is not None:
+            g = cv2.remap(g, self._undistort[0], self._undistort[1], cv2.INTER_LINEAR)
+        return g
+
+    def update(self, image: np.ndarray, pose: CameraPose, time_s: float,
+               focus_ned_m: Optional[np.ndarray] = None) -> Optional[ParallaxResult]:
+        """Add a frame; returns its height evidence, or None (``last_reason`` says why).
+
+        ``focus_ned_m``: a candidate spot (local NED); when the ground band is larger than ``window_hw`` the
+        window is centred on it (else on the band's lower middle).
+        """
+        cfg = self.config
+        self.last = None
+        if not (math.isfinite(pose.agl_m) and pose.agl_m >= cfg.min_agl_m):
+            self.last_reason = f"height above ground {pose.agl_m} m unusable (need >= {cfg.min_agl_m} m)"
+            return None
+        grey = self.grey(image)
+        while self._history and (time_s - self._history[0].time_s > cfg.history_s
+                                 or self._history[0].time_s >= time_s):
+            self._history.popleft()
+        result = None
+        window = self._window(pose, focus_ned_m)
+        ref = self._pick_reference(pose, window) if window is not None else None
+        if window is None:
+            self.last_reason = f"no ground within {cfg.max_range_m:.0f} m in view"
+        elif ref is not None:
+            result = self._measure(grey, pose, ref, time_s, window)
+        self._store(_Stored(time_s, grey, pose))
+        self.last = result
+        return result
+
+    def _store(self, item: _Stored) -> None:
+        h = self._history
+        # Keyframes at least history_s / max_frames apart: the newest frame replaces the previous one when
+        # that one is too close to its predecessor (the ring always holds the latest frame).
+        gap = self.config.history_s / self.config.max_frames
+        if len(h) > 1 and h[-1].time_s - h[-2].time_s < gap:
+            h.pop()
+        h.append(item)
+        while len(h) > self.config.max_frames:
+            h.popleft()
+
+    def _window(self, pose: CameraPose, focus: Optional[np.ndarray]) -> Optional[tuple[slice, slice]]:
+        """Rows and columns DIS runs on: the ground band within max_range_m, cropped to window_hw."""
+        h, w = self.size_hw
+        n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
+        # Rows get nearer going down (camera below the horizon): test every row at five columns at once.
+        xs = self._norm[0][0][np.linspace(0, w - 1, 5).astype(int)][None, :]
+        ys = self._norm[1][:, :1]
+        nx = n[0] * xs + n[1] * ys + n[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = np.where(nx > 0, pose.agl_m / nx, np.nan)
+        r = pose.r_nc
+        pn = (r[0, 0] * xs + r[0, 1] * ys + r[0, 2]) * lam
+        pe = (r[1, 0] * xs + r[1, 1] * ys + r[1, 2]) * lam
+        with np.errstate(invalid="ignore"):
+            rows = np.flatnonzero(np.any(np.hypot(pn, pe) <= self.config.max_range_m, axis=1))
+        if rows.size == 0 or h - int(rows[0]) < 16:
+            return None
+        row0 = max(0, int(rows[0]) - 8)                      # DIS patches need a little context
+        wh, ww = min(self.config.window_hw[0], h - row0), min(self.config.window_hw[1], w)
+        cu, cv = 0.5 * w, h - 0.5 * wh
+        if focus is not None:
+            cam = pose.r_nc.T @ (np.asarray(focus, np.float64) - pose.position_ned_m)
+            if cam[2] > 0:
+                cu, cv = self.k_cv[0, 0] * cam[0] / cam[2] + self.k_cv[0, 2], \
+                    self.k_cv[1, 1] * cam[1] / cam[2] + self.k_cv[1, 2]
+        c0 = int(np.clip(round(cu - ww / 2), 0, w - ww))
+        r0 = int(np.clip(round(cv - wh / 2), row0, h - wh))
+        return slice(r0, r0 + wh), slice(c0, c0 + ww)
+
+    def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice]) -> Optional[_Stored]:
+        """The newest keyframe that detects ``enough_detect_m`` with margin, else the most sensitive one.
+
+        All stored frames are scored at once at a few probe pixels of the window: the smallest height they
+        could detect there (median over the probes the keyframe still sees). Hovering (no baseline) scores
+        inf: no keyframe, no evidence.
+        """
+        if not self._history:
+            self.last_reason = "no earlier frame yet"
+            return None
+        cfg = self.config
+        h, w = self.size_hw
+        rs, cs = window
+        uu, vv = np.meshgrid(np.linspace(cs.start + 0.1 * (cs.stop - cs.start), cs.stop - 1, 5),
+                             np.linspace(rs.start + 0.1 * (rs.stop - rs.start), rs.stop - 1, 4))
+        probes = np.vstack([uu.ravel(), vv.ravel()])
+        k_inv = np.linalg.inv(self.k_cv)
+        xc = (k_inv @ np.vstack([probes, np.ones(probes.shape[1])]))
+        items = list(self._history)
+        r_ref = np.stack([it.pose.r_nc for it in items])                        # M×3×3 NED <- ref camera
+        p_ref = np.stack([it.pose.position_ned_m for it in items])              # M×3
+        rot = np.einsum("mji,jk->mik", r_ref, pose.r_nc)                        # R_r^T R_c
+        t = np.einsum("mji,mj->mi", r_ref, pose.position_ned_m[None] - p_ref)   # R_r^T (p_c - p_r)
+        n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
+        d = pose.agl_m
+        q = np.einsum("mij,jk->mik", rot + t[:, :, None] * n[None, None, :] / d, xc)   # M×3×K, H_e x_c
+        nx = n @ xc                                                             # K
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xr = q[:, :2] / q[:, 2:3]
+            ur = self.k_cv[0, 0] * xr[:, 0] + self.k_cv[0, 2]
+            vr = self.k_cv[1, 1] * xr[:, 1] + self.k_cv[1, 2]
+            inside = (q[:, 2] > 0) & (nx > 0)[None] & (ur >= 8) & (ur <= w - 9) & (vr >= 8) & (vr <= h - 9)
+            z0 = d / nx[None] * q[:, 2]
+            g = (t[:, :2, None] - xr * t[:, 2:3, None]) / z0[:, None]
+            gnorm = np.where(inside, np.hypot(g[:, 0], g[:, 1]), np.nan)
+            f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
+            det = cfg.detect_sigmas * d * (cfg.flow_noise_px / f) / np.nanmedian(
+                np.where(inside.any(axis=1, keepdims=True), gnorm, 0.0), axis=1)
+        det = np.where((inside.mean(axis=1) >= cfg.min_overlap) & np.isfinite(det), det, np.inf)
+        if not np.isfinite(det).any():
+            self.last_reason = "no keyframe with baseline overlaps the current view (hovering?)"
+            return None
+        # A longer baseline than needed only adds occlusion and resampling blur.
+        enough = np.flatnonzero(det <= cfg.enough_detect_m)
+        return items[int(enough[-1])] if enough.size else items[int(np.argmin(det))]
+
+    def _measure(self, grey: np.ndarray, pose: CameraPose, ref: _Stored, time_s: float,
+                 window: tuple[slice, slice]) -> ParallaxResult:
+        cfg = self.config
+        rs, cs = window
+        hom, rot, t, n, d = plane_homography(self.k_cv, pose, ref.pose)
+        # Warp only the window: current pixel (x, y) of the window = (x + c0, y + r0) of the frame.
+        shift = np.array([[1.0, 0.0, cs.start], [0.0, 1.0, rs.start], [0.0, 0.0, 1.0]])
+        wh, ww = rs.stop - rs.start, cs.stop - cs.start
+        wrp = cv2.warpPerspective(ref.grey, hom @ shift, (ww, wh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                  borderMode=cv2.BORDER_REPLICATE)
+        cur = np.ascontiguousarray(grey[rs, cs])
+        flow = np.asarray(self._dis.calc(cur, wrp, None))  # type: ignore[call-overload]
+        xx, yy = self._pix[0][rs, cs], self._pix[1][rs, cs]
+        mx, my = xx + flow[..., 0], yy + flow[..., 1]
+        matched = cv2.remap(wrp, mx - cs.start, my - rs.start, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        photo = np.abs(cur.astype(np.int16) - matched.astype(np.int16))
+        # Where the matched point lies in the reference image (pixel-centre convention), then normalised.
+        qx = hom[0, 0] * mx + hom[0, 1] * my + hom[0, 2]
+        qy = hom[1, 0] * mx + hom[1, 1] * my + hom[1, 2]
+        qz = hom[2, 0] * mx + hom[2, 1] * my + hom[2, 2]
+        ur, vr = qx / qz, qy / qz
+        h, w = self.size_hw
+        in_ref = (qz > 0) & (ur >= 0) & (ur <= w - 1) & (vr >= 0) & (vr <= h - 1)
+        k_inv = np.linalg.inv(self.k_cv)
+        xr = np.stack([(ur - self.k_cv[0, 2]) * k_inv[0, 0], (vr - self.k_cv[1, 2]) * k_inv[1, 1]]).reshape(2, -1)
+        xc = np.stack([self._norm[0][rs, cs], self._norm[1][rs, cs]]).reshape(2, -1)
+        hgt, gnorm, cross = parallax_height(xc.astype(np.float64), xr.astype(np.float64), rot, t, n, d)
+        f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
+        shape = cur.shape
+        hgt, gnorm, cross = hgt.reshape(shape), gnorm.reshape(shape), cross.reshape(shape)
+        # The residual across the epipolar direction is flow error only (parallax lies along it): its robust
+        # spread is this pair's flow noise, used when above the configured floor.
+        matchable = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error)
+        noise_px = cfg.flow_noise_px
+        if int(matchable.sum()) >= 100:
+            noise_px = max(noise_px, 1.4826 * float(np.median(cross[matchable])) * f)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sigma0 = d * (noise_px / f) / gnorm
+        # NED point of each pixel at its measured height (the plane point where there is no height).
+        lam_scale = np.where(np.isfinite(hgt), np.clip(1.0 - hgt / d, 0.05, 1.0), 1.0)
+        ned, nx = self._ned_points(pose, xc, lam_scale.reshape(-1))
+        ned = ned.reshape((3,) + shape)
+        near = (nx.reshape(shape) > 0) & (np.hypot(ned[0] - pose.position_ned_m[0],
+                                                   ned[1] - pose.position_ned_m[1]) <= cfg.max_range_m)
+        reliable = near & in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error) \
+            & (cross * f <= max(cfg.max_cross_parallax_px, 3 * noise_px))
+        fit = _fit_ground(ned, hgt, sigma0, reliable & (sigma0 <= cfg.max_sigma_h_m), pose.position_ned_m)
+        local = hgt - _ground_surface(fit, ned, pose.position_ned_m)
+        height = np.where(reliable, local, np.nan).astype(np.float32)
+        patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)
+        rng = np.sqrt((ned[0] - pose.position_ned_m[0]) ** 2 + (ned[1] - pose.position_ned_m[1]) ** 2
+                      + (ned[2] - pose.position_ned_m[2]) ** 2)
+        resolved = patch_px * rng / f <= cfg.max_patch_footprint_m
+        detectable = np.where(reliable & resolved, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
+        out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
+        baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))
+        self.last_reason = ""
+        return ParallaxResult(time_s, rs, cs, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
+                              time_s - ref.time_s, fit, noise_px)
+
+    def _ned_points(self, pose: CameraPose, xc: np.ndarray, lam_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
+        nx = n[0] * xc[0] + n[1] * xc[1] + n[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = np.where(nx > 0, pose.agl_m / nx, np.nan) * lam_scale
+        r = pose.r_nc
+        pts = np.empty((3, xc.shape[1]), np.float64)
+        for i in range(3):
+            pts[i] = (r[i, 0] * xc[0] + r[i, 1] * xc[1] + r[i, 2]) * lam + pose.position_ned_m[i]
+        return pts, nx
+
+
+def _design(dn: np.ndarray, de: np.ndarray) -> np.ndarray:
+    return np.stack([np.ones_like(dn), dn, de, dn * dn, dn * de, de * de], axis=-1)
+
+
+def _fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndarray, here: np.ndarray,
+                max_points: int = 3000) -> np.ndarray:
+    """Robust quadratic surface through the ground's heights (coefficients in 100 m units).
+
+    Starts from the 10th percentile (obstacles sit above the ground; some ground shows between them) and
+    trims to shrinking windows that reach less far up than down, so obstacles do not lift the surface.
+    """
+    coef = np.zeros(6)
+    idx = np.flatnonzero(use.reshape(-1))
+    if idx.size < 30:
+        return coef
+    if idx.size > max_points:
+        idx = idx[:: idx.size // max_points + 1]
+    h = hgt.reshape(-1)[idx]
+    dn = (ned[0].reshape(-1)[idx] - here[0]) / 100.0
+    de = (ned[1].reshape(-1)[idx] - here[1]) / 100.0
+    a = _design(dn, de)
+    coef[0] = float(np.percentile(h, 10))
+    for window in (3.0, 1.5, 0.6):
+        res = h - a @ coef
+        # Asymmetric: what stands out above the surface is left out sooner than what lies below it, so a
+        # field packed with cars of one height does not become a raised "ground" at their roofs.
+        inl = (res >= -window) & (res <= 0.3 * window)
+        if inl.sum() < 30:
+            break
+        sol, *_ = np.linalg.lstsq(a[inl], h[inl], rcond=None)
+        coef = sol
+    return coef
+
+
+def _ground_surface(coef: np.ndarray, ned: np.ndarray, here: np.ndarray) -> np.ndarray:
+    dn = (ned[0] - here[0]) / 100.0
+    de = (ned[1] - here[1]) / 100.0
+    out: np.ndarray = coef[0] + coef[1] * dn + coef[2] * de + coef[3] * dn * dn + coef[4] * dn * de \
+        + coef[5] * de * de
+    return out

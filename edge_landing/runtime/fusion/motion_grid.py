@@ -1,0 +1,213 @@
+"""Motion-geometry evidence per local NED cell, with a time-based memory (ARCHITECTURE.md §11).
+
+Cells have the fusion grid's size and origin convention (edges at multiples of ``cell_m``), so the two
+line up cell for cell. Per cell, from each frame pair (motion.ParallaxResult):
+- the smallest obstacle height that frame could have detected there (``detectable``, the worst reliable
+  pixel of the cell: every part of the cell must have been measurable);
+- whether some pixel stood out: |height| >= half the obstacle height and >= ``detect_sigmas`` σ ("high";
+  drops count too: a site must be flat).
+Across frames: ``clear_t`` is the last time a frame found the cell measurable to the obstacle height and
+not high; ``seen_w`` / ``high_w`` are weights of frames that measured it / found it high, decaying with
+``memory_s``. A cell is *geometry-clear* while ``now - clear_t <= memory_s`` and it is not an obstacle;
+an *obstacle* when ``high_w >= obstacle_vote_share · seen_w`` (flow has heavy tails: one odd frame out
+of many does not make an obstacle; a real one is high in most frames that could see it).
+Pure numpy/OpenCV; memory is the grid itself (bounded) and timestamps (bounded in time by construction).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from edge_landing.runtime.fusion.motion import ParallaxResult
+
+
+@dataclass(frozen=True)
+class GeometryView:
+    """Geometry evidence on a window of cells (rows north, columns east), as of ``time_s``.
+
+    ``clear``: confirmed clear of obstacles of ``obstacle_height_m``; ``obstacle``: something at least that
+    tall was seen; ``detectable_m``: the smallest height detectable there within the memory (inf: never
+    measured); ``baseline_m``: the baseline of the frame that last confirmed the cell (NaN: never);
+    ``clear_age_s``: time since that confirmation (inf: never).
+    """
+
+    time_s: float
+    obstacle_height_m: float
+    clear: np.ndarray
+    obstacle: np.ndarray
+    detectable_m: np.ndarray
+    baseline_m: np.ndarray
+    clear_age_s: np.ndarray
+
+
+class GeometryGrid:
+    """Square grid of cells following the vehicle (whole-cell moves), holding motion-geometry evidence."""
+
+    def __init__(self, cell_m: float, radius_m: float, memory_s: float, obstacle_height_m: float,
+                 detect_sigmas: float = 3.0, obstacle_vote_share: float = 0.3, max_unexplained_share: float = 0.1,
+                 grow_m: float = 1.0):
+        self.cell_m = float(cell_m)
+        self.size = max(3, int(math.ceil(2.0 * radius_m / cell_m)))
+        self.memory_s = float(memory_s)
+        self.obstacle_height_m = float(obstacle_height_m)
+        self.detect_sigmas = float(detect_sigmas)
+        self.obstacle_vote_share = float(obstacle_vote_share)
+        self.max_unexplained_share = float(max_unexplained_share)
+        self.grow_m = float(grow_m)
+        self.north0_m = -self.size * self.cell_m / 2.0
+        self.east0_m = -self.size * self.cell_m / 2.0
+        self._time_s: Optional[float] = None
+        self.clear()
+
+    def clear(self) -> None:
+        s = self.size
+        self._det = np.full((s, s), np.inf, np.float32)          # best detectable height within memory
+        self._det_t = np.full((s, s), -np.inf)                   # when it was measured
+        self._clear_t = np.full((s, s), -np.inf)                 # last frame that confirmed the cell
+        self._clear_base = np.full((s, s), np.nan, np.float32)   # that frame's baseline
+        self._w = np.zeros((2, s, s), np.float32)                # decayed weights: seen, high
+        self._time_s = None
+
+    def centre_on(self, north_m: float, east_m: float) -> None:
+        """Move so that (north, east) is near the centre (same rule as fusion's TopDownGrid), keeping the overlap."""
+        half = self.size * self.cell_m / 2.0
+        n0 = math.floor((north_m - half) / self.cell_m) * self.cell_m
+        e0 = math.floor((east_m - half) / self.cell_m) * self.cell_m
+        dr = int(round((n0 - self.north0_m) / self.cell_m))
+        dc = int(round((e0 - self.east0_m) / self.cell_m))
+        self.north0_m, self.east0_m = n0, e0
+        if dr or dc:
+            self._det = _shift(self._det, dr, dc, np.inf)
+            self._det_t = _shift(self._det_t, dr, dc, -np.inf)
+            self._clear_t = _shift(self._clear_t, dr, dc, -np.inf)
+            self._clear_base = _shift(self._clear_base, dr, dc, np.nan)
+            self._w = np.stack([_shift(w, dr, dc, 0.0) for w in self._w])
+
+    def add(self, result: ParallaxResult) -> int:
+        """Merge one frame's evidence; returns the number of cells it measured."""
+        t = result.time_s
+        if self._time_s is not None:
+            if t < self._time_s:            # time went backwards: nothing older can be trusted
+                self.clear()
+            else:
+                self._w *= np.float32(math.exp(-(t - self._time_s) / self.memory_s))
+        self._time_s = t
+        frame = self._frame_cells(result)
+        if frame is None:
+            return 0
+        r0, c0, det, high, suspect = frame
+        win = (slice(r0, r0 + det.shape[0]), slice(c0, c0 + det.shape[1]))
+        measured = np.isfinite(det)
+        best = self._det[win]
+        expired = (t - self._det_t[win]) > self.memory_s
+        better = measured & ((det <= best) | expired)
+        best[better] = det[better]
+        self._det_t[win][better] = t
+        confirm = measured & (det <= self.obstacle_height_m) & ~high & ~suspect
+        self._clear_t[win][confirm] = t
+        self._clear_t[win][(high | suspect) & ~confirm] = -np.inf
+        self._clear_base[win][confirm] = np.float32(result.baseline_m)
+        self._w[0][win] += measured | high
+        self._w[1][win] += high
+        return int(measured.sum())
+
+    def _frame_cells(self, result: ParallaxResult) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
+        """(row0, col0, detectable, high, suspect per cell) on the bounding box of this frame's cells."""
+        ned = result.ned_m
+        ok = np.isfinite(ned[0])
+        if not ok.any():
+            return None
+        scale = 1.0 / self.cell_m
+        r = np.floor((ned[0][ok] - self.north0_m) * scale).astype(np.int64)
+        c = np.floor((ned[1][ok] - self.east0_m) * scale).astype(np.int64)
+        inside = (r >= 0) & (r < self.size) & (c >= 0) & (c < self.size)
+        if not inside.any():
+            return None
+        r, c = r[inside], c[inside]
+        hgt = result.height_m[ok][inside]
+        det = result.detectable_m[ok][inside]
+        r0, r1, c0, c1 = max(int(r.min()) - 1, 0), min(int(r.max()) + 2, self.size), \
+            max(int(c.min()) - 1, 0), min(int(c.max()) + 2, self.size)
+        rows, cols = r1 - r0, c1 - c0
+        idx = (r - r0) * cols + (c - c0)
+        n = rows * cols
+        reliable = np.isfinite(det)
+        n_rel = np.bincount(idx[reliable], minlength=n)
+        n_unrel = np.bincount(idx[~reliable], minlength=n)
+        worst = np.full(n, -np.inf, np.float32)
+        np.maximum.at(worst, idx[reliable], det[reliable])
+        sigma = det / np.float32(self.detect_sigmas)
+        with np.errstate(invalid="ignore"):
+            # Both signs: a landing site must be flat, and a drop (a gap between packed cars seen as the
+            # "ground" at their roofs, a roof's edge, a ditch) is as disqualifying as something standing up.
+            dev = np.abs(hgt)
+            high_px = reliable & (dev >= 0.5 * self.obstacle_height_m) & (dev >= self.detect_sigmas * sigma)
+        high = np.bincount(idx[high_px], minlength=n).reshape(rows, cols) > 0
+        # Every part of a cell must be explained by the plane model: pixels the flow could not match (occlusion
+        # by something tall, a parallax too large for the pair) are not "no evidence" but unexplained, so a
+        # cell with more than a few of them is not measured in this frame, and one with mostly unexplained
+        # pixels is suspect (its earlier confirmation is revoked: a car's top often fails the photometric check).
+        total = n_rel + n_unrel
+        measured = (n_rel > 0) & (n_unrel <= self.max_unexplained_share * total)
+        suspect = (n_unrel > 0.5 * total).reshape(rows, cols)
+        det_c = np.where(measured, worst, np.inf).astype(np.float32).reshape(rows, cols)
+        det_c = _fill_holes(det_c, (total == 0).reshape(rows, cols))
+        # A pixel covers up to a few cells on the ground at range, and flow smears an obstacle's edge into the
+        # ground around it (its top is placed at a height read low): grow what stood out by ``grow_m``.
+        k = 2 * max(1, int(math.ceil(self.grow_m / self.cell_m))) + 1
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        high = cv2.dilate(high.view(np.uint8), kernel).astype(bool)
+        suspect = cv2.dilate(suspect.view(np.uint8), kernel).astype(bool)
+        return r0, c0, det_c, high, suspect
+
+    def view(self, north0_m: float, east0_m: float, shape: tuple[int, int], now_s: float) -> GeometryView:
+        """The evidence on a window of cells whose corner is (north0, east0) (cells outside: no evidence)."""
+        rows, cols = shape
+        dr = int(round((north0_m - self.north0_m) / self.cell_m))
+        dc = int(round((east0_m - self.east0_m) / self.cell_m))
+
+        def take(a: np.ndarray, fill: float) -> np.ndarray:
+            out = np.full((rows, cols), fill, a.dtype)
+            rs0, rs1 = max(dr, 0), min(dr + rows, self.size)
+            cs0, cs1 = max(dc, 0), min(dc + cols, self.size)
+            if rs0 < rs1 and cs0 < cs1:
+                out[rs0 - dr:rs1 - dr, cs0 - dc:cs1 - dc] = a[rs0:rs1, cs0:cs1]
+            return out
+
+        decay = 1.0 if self._time_s is None else math.exp(-max(now_s - self._time_s, 0.0) / self.memory_s)
+        seen = take(self._w[0], np.float32(0.0)) * decay
+        high_w = take(self._w[1], np.float32(0.0)) * decay
+        obstacle = (high_w > 0) & (high_w >= self.obstacle_vote_share * seen)
+        age = now_s - take(self._clear_t, -np.inf)
+        clear = (age <= self.memory_s) & ~obstacle
+        det = take(self._det, np.float32(np.inf))
+        det = np.where(now_s - take(self._det_t, -np.inf) <= self.memory_s, det, np.inf).astype(np.float32)
+        return GeometryView(now_s, self.obstacle_height_m, clear, obstacle, det,
+                            take(self._clear_base, np.float32(np.nan)), np.where(np.isfinite(age), age, np.inf))
+
+
+def _shift(a: np.ndarray, dr: int, dc: int, fill: float) -> np.ndarray:
+    """new[r, c] = old[r + dr, c + dc], ``fill`` where that falls outside."""
+    s = a.shape[0]
+    out = np.full_like(a, fill)
+    if abs(dr) >= s or abs(dc) >= s:
+        return out
+    r0, r1, c0, c1 = max(0, -dr), s - max(0, dr), max(0, -dc), s - max(0, dc)
+    out[r0:r1, c0:c1] = a[r0 + dr:r1 + dr, c0 + dc:c1 + dc]
+    return out
+
+
+def _fill_holes(det: np.ndarray, empty: np.ndarray, min_neighbours: int = 5) -> np.ndarray:
+    """A cell no pixel fell in, amid measured ones, takes the worst of its neighbours (pixels sample the
+    ground about a cell apart at range, leaving single-cell holes that are not evidence of anything). Cells
+    with pixels that were not measured stay unmeasured."""
+    measured = np.isfinite(det)
+    count = cv2.boxFilter(measured.view(np.uint8), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    worst = cv2.dilate(np.where(measured, det, np.float32(0.0)), np.ones((3, 3), np.uint8),
+                       borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
+    fill = empty & ~measured & (count >= min_neighbours)
+    return np.where(fill, worst, det).astype(np.float32)

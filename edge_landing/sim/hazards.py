@@ -1,0 +1,67 @@
+"""Hazards inside the open areas: what a drone must not land on, placed around the towns' landing spots.
+
+Without these, most of what a camera sees in the open areas is flat ground and a network that says "all
+horizontal" is nearly right (73–80 % of labelled pixels are horizontal in the plain towns). Around every
+landing spot (parks, backyards, plazas) a seeded mix is placed in a ring between ``keep_clear_m`` and
+``ring_m``: parked cars, bushes and trees of several sizes, low walls, poles, and clutter boxes (crates,
+kiosks, roof-unit sized boxes). The spot itself stays open (flights pick spots clear within 5 m), so a
+landing is still possible, next to things that stick out by 0.5–10 m. Uses its own Generator (seeded from
+the world's seed), so the town's layout is the same with or without hazards.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .meshes import Part
+from .towns import FOLIAGE_TINTS, Collector
+from .world import Material, Terrain
+
+WALL_TINT = np.array([0.72, 0.70, 0.66], np.float32)
+POLE_TINT = np.array([0.45, 0.45, 0.47], np.float32)
+CLUTTER_TINTS = np.array([[0.60, 0.55, 0.45], [0.35, 0.38, 0.40], [0.75, 0.72, 0.68]], np.float32)
+
+
+@dataclass(frozen=True)
+class HazardConfig:
+    """Metres; ``per_spot`` hazards around every landing spot."""
+
+    per_spot: int = 25
+    keep_clear_m: float = 7.0     # nothing closer to the spot's centre than this (its 5 m disc stays open)
+    ring_m: float = 30.0          # ... nor farther than this
+
+
+def hazard_part(rng: np.random.Generator, terrain: Terrain, spots: np.ndarray,
+                config: HazardConfig = HazardConfig()) -> Part:
+    """Meshes of the hazards around ``spots`` (N×2 north, east), standing on ``terrain``."""
+    col = Collector(rng, terrain)
+    for n0, e0 in np.asarray(spots, np.float64).reshape(-1, 2):
+        for _ in range(config.per_spot):
+            r = math.sqrt(rng.uniform(config.keep_clear_m ** 2, config.ring_m ** 2))
+            a = rng.uniform(0.0, 2.0 * math.pi)
+            _one(col, rng, n0 + r * math.cos(a), e0 + r * math.sin(a), a)
+    return col.build()
+
+
+def _one(col: Collector, rng: np.random.Generator, n: float, e: float, bearing: float) -> None:
+    kind = rng.random()
+    yaw = rng.uniform(0.0, math.pi)
+    if kind < 0.30:                                           # parked car (1.5 m)
+        col.car(n, e, yaw)
+    elif kind < 0.50:                                         # bush, 0.6-1.8 m tall
+        zg, _ = col.ground_z(n, e)
+        rz = rng.uniform(0.3, 0.9)
+        col.add("crown", n=n, e=e, z=zg - rz, rx=rng.uniform(0.6, 1.6), ry=rng.uniform(0.6, 1.6), rz=rz,
+                tint=FOLIAGE_TINTS[rng.integers(len(FOLIAGE_TINTS))])
+    elif kind < 0.65:                                         # tree, small to large
+        col.tree(n, e, rng.uniform(1.0, 4.0), scale=rng.uniform(0.5, 1.2))
+    elif kind < 0.80:                                         # low wall / fence run, tangential to the spot
+        col.box(n, e, rng.uniform(2.0, 6.0), 0.12, bearing + math.pi / 2, rng.uniform(0.6, 1.5), Material.WALL,
+                WALL_TINT, top_material=Material.CONCRETE)
+    elif kind < 0.90:                                         # pole / lamp post, 3-9 m
+        col.box(n, e, 0.12, 0.12, yaw, rng.uniform(3.0, 9.0), Material.TRUNK, POLE_TINT)
+    else:                                                     # clutter: crates, kiosks, roof-unit boxes
+        col.box(n, e, rng.uniform(0.5, 2.0), rng.uniform(0.5, 2.0), yaw, rng.uniform(0.5, 2.5), Material.CLUTTER,
+                CLUTTER_TINTS[rng.integers(len(CLUTTER_TINTS))])

@@ -1,0 +1,163 @@
+"""Motion geometry (ARCHITECTURE.md §11) on ray-cast renders of small hand-built worlds and a generated town.
+
+The worlds are real sim worlds (textured terrain, Embree ray casting, the sim's sensor effects); only their
+layout is written here so that the truth is known: a flat field with one box, a field packed with cars.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount
+from edge_landing.runtime.core.messages import VehicleState
+from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+from edge_landing.runtime.fusion.motion import CameraPose, MotionConfig, MotionStage
+
+sim = pytest.importorskip("edge_landing.sim", reason="the sim extra (embreex) renders the test worlds")
+from edge_landing.benchmarks.landing_truth import TruthConfig, check_target  # noqa: E402
+from edge_landing.benchmarks.lying_model import lying_prediction  # noqa: E402
+from edge_landing.sim.effects import EffectOverrides, sample_effects  # noqa: E402
+from edge_landing.sim.meshes import boxes  # noqa: E402
+from edge_landing.sim.world import WORLD_HALF_SIZE_M, GroundMap, Material, Terrain, _finish  # noqa: E402
+
+INTR = Intrinsics.from_hfov(320, 240)
+MOUNT = Mount()
+FPS = 10.0
+EFFECTS = sample_effects(np.random.default_rng(0), EffectOverrides(haze_per_m=0.0, rain=0.0, motion_blur_px=0.0,
+                                                                    noise_sigma=0.01, exposure_ev=0.0))
+
+
+def _flat_world(box_rows: list, seed: int = 0):
+    """A flat grass field (down = 0) with boxes (north, east, half_n, half_e, height_m), tops grassed.
+
+    Tops are textured on purpose: flow cannot measure a textureless surface (it interpolates it from its
+    surroundings and under-reads its height), a limit of motion geometry stated in its docstring.
+    """
+    n = int(round(2 * WORLD_HALF_SIZE_M / 10.0)) + 1
+    terrain = Terrain(z=np.zeros((n, n)), origin_m=-WORLD_HALF_SIZE_M, step_m=10.0)
+    b = np.asarray(box_rows, np.float64).reshape(-1, 5)
+    part = boxes(b[:, 0], b[:, 1], b[:, 2], b[:, 3], 0.0, 0.3, -b[:, 4], Material.CAR_PAINT,
+                 np.array([0.6, 0.2, 0.2], np.float32), top_material=Material.GRASS)
+    return _finish(sim.Style.SUBURBAN, seed, part, terrain, GroundMap(Material.GRASS), np.zeros((0, 2)))
+
+
+def _frames(world, positions, yaw: float = 0.0):
+    renderer = sim.Renderer(world, INTR, MOUNT)
+    rng = np.random.default_rng(1)
+    att = Attitude(0.0, 0.0, yaw)
+    for k, p in enumerate(positions):
+        p = np.asarray(p, np.float64)
+        r = renderer.render(p, att, EFFECTS, rng)
+        yield k, k / FPS, r, VehicleState(k / FPS, att, p, float(-p[2]), "sim")
+
+
+def test_parallax_recovers_a_box_height_within_its_uncertainty():
+    """A 2 m box seen from 40 m with a 12 m sideways baseline: measured height = 2 m within 3 σ."""
+    box_n, box_e, height = 40.0, 0.0, 2.0
+    world = _flat_world([[box_n, box_e, 3.0, 3.0, height]])
+    stage = MotionStage(MotionConfig(), INTR, MOUNT)
+    result, render = None, None
+    for _k, t, r, state in _frames(world, [(0.0, -6.0, -40.0), (0.0, 6.0, -40.0)]):
+        pose = CameraPose.of(MOUNT, state.attitude, state.position_ned_m, state.agl_m)
+        result = stage.update(r.rgb, pose, t, focus_ned_m=np.array([box_n, box_e, 0.0]))  # window on the box
+        render = r
+    assert result is not None and result.baseline_m == pytest.approx(12.0)
+    pts = render.geometry.points_ned[result.rows, result.cols]
+    top = (np.abs(pts[..., 2] + height) < 0.01) & (np.abs(pts[..., 0] - box_n) < 2.0) & (np.abs(pts[..., 1] - box_e) < 2.0)
+    ground = (np.abs(pts[..., 2]) < 0.01) & (np.hypot(pts[..., 0] - box_n, pts[..., 1] - box_e) > 8.0) \
+        & (np.hypot(pts[..., 0], pts[..., 1]) < 50.0)
+    h_top = result.height_m[top & np.isfinite(result.height_m)]
+    sigma = float(np.median(result.sigma_m[top]))
+    assert h_top.size > 20 and 0.05 < sigma < 1.0
+    assert abs(float(np.median(h_top)) - height) <= 3 * sigma, (np.median(h_top), sigma)
+    seen = ground & np.isfinite(result.height_m)
+    h_ground = result.height_m[seen]
+    assert abs(float(np.median(h_ground))) <= sigma and np.mean(np.abs(h_ground) < 3 * result.sigma_m[seen]) > 0.9
+
+
+def _fly(world, positions, allow_unconfirmed: bool = False, images: bool = True):
+    fuser = LandingFuser(FusionConfig(allow_unconfirmed=allow_unconfirmed), INTR, MOUNT)
+    out = []
+    for k, t, r, state in _frames(world, positions):
+        pred = lying_prediction(INTR, MOUNT, state, k)
+        out.append(fuser.update(pred, state, t, r.rgb if images else None))
+    return out
+
+
+def test_hover_without_baseline_does_not_invent_confirmation():
+    world = _flat_world([[30.0, 10.0, 2.0, 1.0, 1.5]])
+    hover = [(0.05 * math.sin(k), 0.05 * math.cos(k), -30.0) for k in range(20)]
+    targets = _fly(world, hover)
+    assert not any(t.valid for t in targets)
+    assert all(t.reason.startswith("unconfirmed: geometry") for t in targets[1:]), targets[-1].reason
+    assert targets[-1].tracked_ned_m is not None          # the network's spot is tracked, just not sent
+
+
+def test_no_safe_area_gives_no_target_even_from_a_lying_model():
+    """A field packed with cars 3 m apart: the liar calls it all flat ground, geometry does not."""
+    cars = [[n, e, 2.2, 0.9, 1.5] for n in np.arange(-20.0, 90.0, 6.0) for e in np.arange(-60.0, 60.0, 3.5)]
+    world = _flat_world(cars)
+    path = [(-20.0 + 1.5 * k, 3.0 * math.sin(0.3 * k), -30.0) for k in range(30)]
+    targets = _fly(world, path)
+    assert not any(t.valid for t in targets), [t.reason for t in targets if t.valid]
+    liar_alone = _fly(world, path[:3], allow_unconfirmed=True, images=False)
+    assert all(t.valid for t in liar_alone)               # not vacuous: without geometry it would land there
+
+
+def test_lying_model_cannot_put_a_target_on_a_car_or_a_roof():
+    """A low pass (25 m) over a field with parked cars and a house-sized block: every geometry-confirmed
+    target is on ground-truth safe ground (ray casting), while the liar alone lands on them."""
+    cars = [[n, e, 2.2, 0.9, 1.5] for n in np.arange(15.0, 45.0, 5.0) for e in (-12.0, -6.0, 0.0, 6.0)]
+    world = _flat_world(cars + [[30.0, 18.0, 6.0, 5.0, 6.0]])
+    # North at 3 m/s over open grass into the car park: the liar lands a few metres ahead of the vehicle.
+    path = [(-14.0 + 0.3 * k, -3.0 + 2.0 * math.sin(0.2 * k), -25.0) for k in range(100)]
+    truth = TruthConfig(log="", clearance_m=FusionConfig().required_clearance_m)
+    geo = LandingFuser(FusionConfig(), INTR, MOUNT)
+    liar = LandingFuser(FusionConfig(allow_unconfirmed=True), INTR, MOUNT)
+    unsafe_liar, confirmed = 0, 0
+    for k, t, r, state in _frames(world, path):
+        pred = lying_prediction(INTR, MOUNT, state, k)
+        t_geo = geo.update(pred, state, t, r.rgb)
+        t_liar = liar.update(pred, state, t)
+        if t_geo.valid:
+            confirmed += 1
+            assert t_geo.evidence.startswith("geometry+network") and t_geo.geometry_baseline_m > 0
+            ok, why = check_target(world, *t_geo.position_ned_m[:2], truth)
+            assert ok, (k, why)
+        if t_liar.valid:
+            unsafe_liar += not check_target(world, *t_liar.position_ned_m[:2], truth)[0]
+    assert unsafe_liar > 0                                # the liar alone does land on hazards here
+    assert confirmed > 0, "geometry never confirmed a spot: the safety check above would be vacuous"
+    # The overlay shows it: confirmed cells green, obstacles from parallax magenta (ARCHITECTURE.md §11).
+    from edge_landing.runtime.io.overlay import grid_inset
+
+    inset = grid_inset(geo.grid, t_geo, state, geometry=geo.geometry)
+    assert inset is not None
+    colours = {tuple(int(v) for v in px) for px in inset.reshape(-1, 3)}
+    assert (40, 190, 60) in colours and (220, 50, 220) in colours
+
+
+def test_only_geometry_confirmed_targets_are_committed():
+    """Continuity (ARCHITECTURE.md §12) re-sends a committed spot from memory: a network-only target never
+    becomes one by default, a geometry-confirmed one does."""
+    from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, EVIDENCE_NETWORK_ONLY, Target
+    from edge_landing.runtime.pipeline.trust import Continuity, ContinuityConfig
+
+    state = VehicleState(0.0, position_ned_m=np.array([0.0, 0.0, -10.0]), agl_m=10.0)
+    spot = np.array([8.0, 0.0, 0.0])
+
+    def run(evidence: str, config: ContinuityConfig = ContinuityConfig(commit_frames=2)) -> Continuity:
+        cont = Continuity(config)
+        for i in range(4):
+            cont.step(Target(i, float(i), True, position_body_frd_m=spot - state.position_ned_m, position_ned_m=spot,
+                             clearance_m=3.0, confidence=0.9, evidence=evidence), state, None, True)
+        return cont
+
+    assert run(f"{EVIDENCE_NETWORK_ONLY} (unconfirmed: ...)").spot is None
+    assert run(EVIDENCE_GEOMETRY).spot is not None
+    held, _ = run(EVIDENCE_GEOMETRY).step(Target.none(5, 5.0, "unconfirmed"), state, None, True)
+    assert held.valid and held.reason.startswith("held")
+    explicit = ContinuityConfig(commit_frames=2, commit_unconfirmed=True)   # edge-run --allow-unconfirmed
+    assert run(EVIDENCE_NETWORK_ONLY, explicit).spot is not None
