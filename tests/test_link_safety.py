@@ -250,7 +250,7 @@ def _committed(spot: np.ndarray, state: VehicleState, frames: int = 3) -> Contin
     cont = Continuity(ContinuityConfig())
     for i in range(frames):
         cont.step(Target(i, float(i), True, position_body_frd_m=spot - state.position_ned_m, position_ned_m=spot,
-                         clearance_m=3.0, confidence=0.9), state, None, True)
+                         clearance_m=3.0, confidence=0.9, evidence=EVIDENCE_GEOMETRY), state, None, True)
     assert cont.spot is not None
     return cont
 
@@ -264,14 +264,15 @@ def test_a_committed_spot_is_sent_while_fusion_picks_another_one():
     other = np.array([-12.0, 5.0, 0.0])
     for i in range(3, 40):                                        # 37 frames in a row elsewhere
         out, said = cont.step(Target(i, 2.0 + (i - 2) * 0.1, True, position_body_frd_m=other - state.position_ned_m,
-                                     position_ned_m=other, clearance_m=4.0, confidence=0.9), state, None, True)
+                                     position_ned_m=other, clearance_m=4.0, confidence=0.9,
+                                     evidence=EVIDENCE_GEOMETRY), state, None, True)
         assert out.valid and out.reason.startswith("held: committed spot") and said == ""
         assert "chose a spot 20.6 m away" in out.reason
         np.testing.assert_allclose(out.position_ned_m, spot)
         np.testing.assert_allclose(out.position_body_frd_m, [8.0, 0.0, 30.0])
     near = spot + np.array([0.5, 0.0, 0.0])
     confirming = Target(40, 5.9, True, position_body_frd_m=near - state.position_ned_m, position_ned_m=near,
-                        clearance_m=3.0, confidence=0.9)
+                        clearance_m=3.0, confidence=0.9, evidence=EVIDENCE_GEOMETRY)
     out, _ = cont.step(confirming, state, None, True)
     assert out is confirming and cont.spot is not None
     np.testing.assert_allclose(cont.spot.ned_m, near)
@@ -304,7 +305,7 @@ def test_no_new_spot_farther_than_twice_the_height():
     for i, height in enumerate([8.0, 8.0, 8.0, 25.0, 25.0, 25.0]):
         state = VehicleState(float(i), position_ned_m=np.array([0.0, 0.0, -height]), agl_m=height)
         target = Target(i, float(i), True, position_body_frd_m=spot - state.position_ned_m, position_ned_m=spot,
-                        clearance_m=3.0, confidence=0.9)
+                        clearance_m=3.0, confidence=0.9, evidence=EVIDENCE_GEOMETRY)
         out, _ = cont.step(target, state, None, True)
         if height < 20.0:
             assert not out.valid and "40 m away at 8 m height, beyond the 2:1 cone" in out.reason
