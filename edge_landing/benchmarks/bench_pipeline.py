@@ -42,7 +42,7 @@ from edge_landing.runtime.pipeline import (
     ScaleStage,
 )
 
-MODES = ("model-only", "pipeline-overlap", "pipeline-sequential")
+MODES = ("model-only", "pipeline-overlap", "pipeline-sequential", "pipeline-rate")
 
 
 @dataclass(frozen=True)
@@ -52,12 +52,13 @@ class BenchConfig:
     depth_model: Optional[str] = None   # with hvo_model: a depth + HVO pair instead of one joint model
     hvo_model: Optional[str] = None
     frames: int = 40
-    width: int = 320
-    height: int = 240
+    width: int = 640
+    height: int = 480
     threads: int = 2
     rounds: int = 3
     warmup: int = 3
     out: Optional[str] = None
+    fusion_hz: float = 15.0   # the pipeline-rate mode fuses at most this often (edge-run --fusion-hz)
 
 
 class MemoryReader(Reader):
@@ -108,7 +109,8 @@ def model_only(inference, frames: list) -> tuple:
     return time.perf_counter() - start, lat
 
 
-def pipeline_once(inference, frames, intrinsics, mount, overlap: bool, sink_port: int) -> tuple:
+def pipeline_once(inference, frames, intrinsics, mount, overlap: bool, sink_port: int,
+                  fusion_hz: float = 0.0) -> tuple:
     telemetry = TelemetryBuffer()
     link = MavlinkLink(LinkConfig(f"udpout:127.0.0.1:{sink_port}"), telemetry).start()
     grabber = Grabber(SourceConfig("memory", SourceKind.FILE), opener=lambda c: MemoryReader(frames),
@@ -116,7 +118,8 @@ def pipeline_once(inference, frames, intrinsics, mount, overlap: bool, sink_port
     fuser = LandingFuser(FusionConfig(), intrinsics, mount)
     scale = ScaleStage(None, AltitudeScaleEstimator(), intrinsics, mount)
     pipe = Pipeline(grabber, inference, scale, fuser.fuse, telemetry, link,
-                    PipelineOptions(status_period_s=1e9, overlap=overlap), io.StringIO(), None, io.StringIO())
+                    PipelineOptions(status_period_s=1e9, overlap=overlap, fusion_max_hz=fusion_hz),
+                    io.StringIO(), None, io.StringIO())
     try:
         summary = pipe.run()
     finally:
@@ -154,17 +157,20 @@ def bench(cfg: BenchConfig) -> dict:
     walls: dict[str, list[float]] = {m: [] for m in MODES}
     cpus: dict[str, list[float]] = {m: [] for m in MODES}   # process CPU seconds: the real cost, whatever else the machine runs
     lats: dict[str, list[float]] = {m: [] for m in MODES}
+    fused: dict[str, list[int]] = {m: [] for m in MODES}   # frames that reached fusion (a target update each)
     targets = 0
     for r in tqdm(range(cfg.rounds), desc="rounds (model-only / overlap / sequential)", unit="round"):
-        order = MODES[r % 3:] + MODES[: r % 3]  # rotate so no mode always runs first on a warm cache
+        order = MODES[r % len(MODES):] + MODES[: r % len(MODES)]  # rotate so no mode always runs first on a warm cache
         for mode in order:
             cpu0 = time.process_time()
             if mode == "model-only":
                 wall, lat = model_only(inference, frames)
             else:
                 wall, lat, summary = pipeline_once(inference, frames, intrinsics, mount,
-                                                   mode == "pipeline-overlap", sink.getsockname()[1])
+                                                   mode != "pipeline-sequential", sink.getsockname()[1],
+                                                   cfg.fusion_hz if mode == "pipeline-rate" else 0.0)
                 targets = max(targets, summary.targets)
+                fused[mode].append(summary.frames - summary.not_fused)
             walls[mode].append(wall)
             cpus[mode].append(time.process_time() - cpu0)
             lats[mode].extend(lat)
@@ -176,6 +182,7 @@ def bench(cfg: BenchConfig) -> dict:
                 "cpu_ms_per_frame": round(1e3 * sum(cpus[m]) / (n * len(cpus[m])), 2), **percentiles_ms(lats[m])}
             for m in MODES}
     for m in MODES[1:]:
+        rows[m]["fused_per_s"] = round(sum(fused[m]) / sum(walls[m]), 2)  # how often targets update
         ratios = [walls["model-only"][i] / walls[m][i] for i in range(cfg.rounds)]
         rows[m]["ratio_to_model"] = round(float(np.median(ratios)), 3)
     return {"config": asdict(cfg), "model": inference.name, "frames": n, "frame_size": list(frames[0][0].shape[:2]),
@@ -194,14 +201,16 @@ def _drain(sock: socket.socket) -> None:
 def report(result: dict) -> str:
     lines = [f"model {result['model']} | {result['frames']} frames {result['frame_size'][1]}x{result['frame_size'][0]} "
              f"| input {result['model_input'][1]}x{result['model_input'][0]} | {result['config']['threads']} threads",
-             "| mode | images/s | p50 ms | p90 ms | p99 ms | CPU ms/frame | vs model-only |",
-             "|---|---|---|---|---|---|---|"]
+             "| mode | images/s | target updates/s | p50 ms | p90 ms | p99 ms | CPU ms/frame | vs model-only |",
+             "|---|---|---|---|---|---|---|---|"]
     for mode, r in result["modes"].items():
         ratio = f"{r['ratio_to_model']:.0%}" if "ratio_to_model" in r else "-"
-        lines.append(f"| {mode} | {r['images_per_s']:.2f} | {r['p50_ms']:.1f} | {r['p90_ms']:.1f} | {r['p99_ms']:.1f} "
-                     f"| {r['cpu_ms_per_frame']:.1f} | {ratio} |")
+        updates = f"{r['fused_per_s']:.1f}" if "fused_per_s" in r else "-"
+        lines.append(f"| {mode} | {r['images_per_s']:.2f} | {updates} | {r['p50_ms']:.1f} | {r['p90_ms']:.1f} "
+                     f"| {r['p99_ms']:.1f} | {r['cpu_ms_per_frame']:.1f} | {ratio} |")
     lines.append("latency: model-only = one predict; pipeline = telemetry match to decision logged (end to end); "
-                 "vs model-only = median over rounds of the per-round images/s ratio")
+                 "vs model-only = median over rounds of the per-round images/s ratio; pipeline-rate fuses at most "
+                 f"{result['config']['fusion_hz']:g} frames/s (edge-run --fusion-hz), the others are inferred only")
     return "\n".join(lines)
 
 
@@ -212,20 +221,24 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--hvo-model", help="HVO model of a pair (with --depth-model)")
     p.add_argument("--camera", default="sim", help="'sim' (rendered into memory first), a video or an image folder")
     p.add_argument("--frames", type=int, default=40)
-    p.add_argument("--size", default="320x240", help="sim frame size WxH")
+    p.add_argument("--size", default="640x480", help="sim frame size WxH (edge-run's sim camera: 640x480)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--fusion-hz", type=float, default=15.0, help="the pipeline-rate mode's fusion cap")
     p.add_argument("--out", help="write the result as JSON")
     a = p.parse_args(argv)
     try:
         w, h = (int(v) for v in a.size.lower().split("x"))
     except ValueError:
         raise InputError(f"--size must look like 320x240, got '{a.size}'") from None
+    if not 10 <= a.fusion_hz <= 1000:
+        raise InputError(f"--fusion-hz must be 10-1000 (targets must update at 10 Hz or faster), got {a.fusion_hz}")
     if a.frames < 1 or a.rounds < 1:
         raise InputError("--frames and --rounds must be >= 1")
     if bool(a.depth_model) != bool(a.hvo_model):
         raise InputError("--depth-model and --hvo-model go together")
-    cfg = BenchConfig(a.model, a.camera, a.depth_model, a.hvo_model, a.frames, w, h, a.threads, a.rounds, out=a.out)
+    cfg = BenchConfig(a.model, a.camera, a.depth_model, a.hvo_model, a.frames, w, h, a.threads, a.rounds, out=a.out,
+                      fusion_hz=a.fusion_hz)
     result = bench(cfg)
     print(report(result))
     if cfg.out:

@@ -87,6 +87,7 @@ class RunConfig:
     max_frames: int = 0
     duration_s: float = 0.0
     overlap: bool = True
+    fusion_hz: float = 0.0              # 0: fuse every frame; else at most this rate (>= 10, the autopilot's need)
     # NED by default: the landing grid stays put in the world while the vehicle moves (falls back to a fresh
     # per-frame grid when telemetry has no position). Fusion accumulates per-frame verdicts there, not raw
     # heights, so the model's frame-to-frame depth scale error (~1 % at 60-80 m) does not break it.
@@ -100,6 +101,9 @@ class RunConfig:
         if self.mav and not self.altitude_scale and not self.calibration:
             raise InputError("--no-altitude-scale with --mav needs --calibration: without either there is no metric "
                              "depth scale, so no target would ever be sent")
+        if self.fusion_hz != 0 and not 10.0 <= self.fusion_hz <= 1000.0:
+            raise InputError(f"--fusion-hz must be 0 (every frame) or 10-1000: targets must update at 10 Hz or "
+                             f"faster, got {self.fusion_hz}")
         if self.threads < 1:
             raise InputError(f"--threads must be at least 1, got {self.threads}")
         if self.vehicle_radius_m <= 0 or self.margin_m < 0:
@@ -148,6 +152,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (the drone has 2 cores)")
     m.add_argument("--sequential", action="store_true", help="fuse each frame before the next inference "
                    "(default: fusion of frame N overlaps inference of frame N+1)")
+    m.add_argument("--fusion-hz", type=float, default=0.0, help="fuse at most this many frames per second (>= 10; "
+                   "the others are inferred but give no target), leaving the cores to the model when the camera "
+                   "is faster than the whole pipeline (0 = fuse every frame, the default)")
     f = p.add_argument_group("landing")
     f.add_argument("--vehicle-radius", type=float, default=1.0, help="metres")
     f.add_argument("--margin", type=float, default=1.0, help="extra clearance, metres")
@@ -185,7 +192,7 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
                      vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
                      hfov_deg=a.hfov, mount_pitch_deg=a.mount_pitch, record=a.record, log_path=a.log_path,
-                     max_frames=a.max_frames, duration_s=a.duration, overlap=not a.sequential,
+                     max_frames=a.max_frames, duration_s=a.duration, overlap=not a.sequential, fusion_hz=a.fusion_hz,
                      grid=GridMode.from_string(a.grid), obstacle_height_m=a.obstacle_height,
                      allow_unconfirmed=a.allow_unconfirmed)
 
@@ -303,7 +310,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
             decision_log.write(json.dumps(source_record(cfg, src.kind, inference.name)) + "\n")
         # Telemetry is required (trust rules) whenever there is any: an autopilot link or the source's own.
         has_telemetry = bool(cfg.mav) or own_telemetry
-        options = PipelineOptions(cfg.max_frames, cfg.duration_s, overlap=cfg.overlap,
+        options = PipelineOptions(cfg.max_frames, cfg.duration_s, overlap=cfg.overlap, fusion_max_hz=cfg.fusion_hz,
                                   world_grid=cfg.grid is GridMode.NED,
                                   continuity=ContinuityConfig(hold_s=cfg.hold_s,
                                                                min_clearance_m=fusion_cfg.required_clearance_m,

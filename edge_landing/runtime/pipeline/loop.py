@@ -51,6 +51,11 @@ class PipelineOptions:
                                  # False: a fresh vehicle-centred grid per frame (the link still gets the position)
     continuity: ContinuityConfig = ContinuityConfig()
     fresh_s: float = 0.4         # telemetry older than this at send time holds the target back
+    fusion_max_hz: float = 0.0   # 0: fuse every frame. Else fuse a frame only when its capture time is at least
+                                 # 1/fusion_max_hz after the last fused one's; the others are inferred but give
+                                 # no target, so the model keeps the cores while targets still update at this
+                                 # rate (§9). A file is read as fast as the loop goes, so which of its frames
+                                 # are fused depends on the CPU: leave it 0 for reproducible replays
 
 
 class Pipeline:
@@ -74,6 +79,7 @@ class Pipeline:
         self._telemetry_lost_s = 0.0
         self._queue: queue.Queue[Optional[FrameWork]] = queue.Queue(maxsize=1)
         self._worker: Optional[threading.Thread] = None
+        self._last_fused_s: Optional[float] = None
 
     def stop(self, why: str = "request") -> None:
         self.summary.stopped_by = self.summary.stopped_by or why
@@ -134,11 +140,24 @@ class Pipeline:
         pred = invalid(frame, bad) if bad else self.inference.predict(frame)
         times.add("telemetry", t1 - t0)
         times.add("inference", time.perf_counter() - t1)
+        if not self._fusion_due(frame):
+            self.summary.not_fused += 1
+            return
         work = FrameWork(frame, match, pred, t0)
         if self._worker is None:
             self._finish(work)
         else:
             self._queue.put(work)  # waits while the worker still fuses the previous frame (back-pressure)
+
+    def _fusion_due(self, frame: Frame) -> bool:
+        """Whether this frame is fused under ``fusion_max_hz`` (always when it is 0)."""
+        hz = self.options.fusion_max_hz
+        last = self._last_fused_s
+        # A small tolerance so a camera at exactly the cap's rate, with jitter, is not halved.
+        if hz > 0 and last is not None and 0.0 <= frame.capture_time_s - last < 0.9 / hz:
+            return False
+        self._last_fused_s = frame.capture_time_s
+        return True
 
     def _work(self) -> None:
         while (work := self._queue.get()) is not None:

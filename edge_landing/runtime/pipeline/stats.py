@@ -100,6 +100,7 @@ class RunSummary:
     wall_s: float = 0.0
     drops: int = 0
     camera_faults: int = 0
+    not_fused: int = 0           # frames inferred but not fused (PipelineOptions.fusion_max_hz)
     link: Dict[str, int] = field(default_factory=dict)
     rejected_telemetry: Dict[str, int] = field(default_factory=dict)
     times: StageTimes = field(default_factory=StageTimes)
@@ -143,7 +144,8 @@ class RunSummary:
                 p = self.times.percentiles_ms(stage, (50, 90, 99))
                 rows.append(f"| {stage} | {p[0]:.1f} | {p[1]:.1f} | {p[2]:.1f} |")
         rows.append("")
-        rows.append(f"targets {self.targets}/{self.frames} frames ({self.held} held from memory), LANDING_TARGET sent "
+        fused = f" ({self.not_fused} inferred but not fused: --fusion-hz)" if self.not_fused else ""
+        rows.append(f"targets {self.targets}/{self.frames} frames{fused} ({self.held} held from memory), LANDING_TARGET sent "
                     f"{self.sent}, drops {self.drops}, camera faults {self.camera_faults}, link {self.link}, "
                     f"rejected telemetry {self.rejected_telemetry}, stopped by {self.stopped_by or 'end'}")
         rows.append(self.plnd_lag_line())
