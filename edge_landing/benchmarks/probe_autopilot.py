@@ -117,7 +117,7 @@ def _assets(folder: Path) -> Tuple[str, str]:
     import cv2
     import numpy as np
 
-    from edge_landing.benchmarks.soak import flat_ground_onnx
+    from edge_landing.benchmarks.flat_model import flat_ground_model
 
     video = folder / "v.avi"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 10.0, (128, 96))
@@ -125,7 +125,7 @@ def _assets(folder: Path) -> Tuple[str, str]:
     for i in range(8):
         writer.write(np.roll(base, i, axis=1))
     writer.release()
-    return str(video), str(flat_ground_onnx(folder / "flat.onnx"))
+    return str(video), str(flat_ground_model(folder / "flat.onnx", arch="flat-ground-soak", note="soak benchmark model"))
 
 
 def run_probe(name: str, video: str, model: str) -> Dict[str, Any]:

@@ -26,6 +26,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from edge_landing.benchmarks.flat_model import flat_ground_model
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from edge_landing.runtime.io.mavlink_conn import load_mavutil
@@ -72,50 +73,6 @@ class PacedReader(Reader):
             time.sleep(delay)
         self.i += 1
         return np.roll(self.base, self.i % self.base.shape[1], axis=1)
-
-
-def flat_ground_onnx(path: Path, height: int = 48, width: int = 64) -> Path:
-    """A real ONNX graph: depth = flat ground AGL_M below a level camera 45° down, HVO = horizontal."""
-    import onnx
-    from onnx import TensorProto, helper, numpy_helper
-
-    from edge_landing.runtime.perception.contract import (
-        DepthConvention,
-        DepthSpec,
-        HvoSpec,
-        InputSpec,
-        Layout,
-        ModelContract,
-        Task,
-    )
-
-    k = Intrinsics.from_hfov(width, height, math.radians(90.0))
-    rays = k.pixel_rays().reshape(-1, 3).astype(np.float64)
-    down = (Mount().body_from_camera() @ rays.T)[2]
-    with np.errstate(divide="ignore"):
-        plane = np.where(down > 1e-6, AGL_M / down, np.nan).reshape(1, 1, height, width).astype(np.float32)
-    logits = np.zeros((1, 3, height, width), np.float32)
-    logits[:, 0] = 8.0
-    inits = [numpy_helper.from_array(plane, "plane"), numpy_helper.from_array(logits, "logits"),
-             numpy_helper.from_array(np.zeros((), np.float32), "zero")]
-    nodes = [helper.make_node("ReduceMean", ["image"], ["mean"], axes=[1], keepdims=1),
-             helper.make_node("Mul", ["mean", "zero"], ["nothing"]),
-             helper.make_node("Add", ["plane", "nothing"], ["depth"]),
-             helper.make_node("Add", ["logits", "nothing"], ["hvo_logits"])]
-    graph = helper.make_graph(
-        nodes, "flat_ground", [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, height, width])],
-        [helper.make_tensor_value_info("depth", TensorProto.FLOAT, [1, 1, height, width]),
-         helper.make_tensor_value_info("hvo_logits", TensorProto.FLOAT, [1, 3, height, width])], inits)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
-    model.ir_version = 8
-    contract = ModelContract(arch="flat-ground-soak", task=Task.DEPTH_HVO,
-                             input=InputSpec(name="image", layout=Layout.NCHW, height=height, width=width),
-                             depth=DepthSpec("depth", DepthConvention.METRIC, 0.5, 200.0),
-                             hvo=HvoSpec("hvo_logits", Layout.NCHW), source={"note": "soak benchmark model"})
-    for key, value in contract.to_metadata().items():
-        model.metadata_props.add(key=key, value=value)
-    onnx.save(model, str(path))
-    return path
 
 
 class FakeAutopilot:
@@ -172,7 +129,8 @@ def growth(samples: List[Tuple[float, int]], window_s: float) -> Dict[str, float
 
 def soak(cfg: SoakConfig, out: Any = sys.stdout) -> Dict[str, Any]:
     tmp = tempfile.TemporaryDirectory()
-    model_path = cfg.model or str(flat_ground_onnx(Path(tmp.name) / "flat.onnx"))
+    model_path = cfg.model or str(flat_ground_model(Path(tmp.name) / "flat.onnx", agl_m=AGL_M,
+                                                      arch="flat-ground-soak", note="soak benchmark model"))
     inference = JointInference(OnnxModel.load(model_path, 2))
     port = _free_udp_port()
     fake = FakeAutopilot(port).start()
