@@ -256,7 +256,8 @@ def test_sim_flight_video_to_landing_targets(assets, tmp_path):
     video = tmp_path / "flight" / "flight.mp4"
     port = free_udp_port()
     log_path = tmp_path / "t.jsonl"
-    with LoopbackAutopilot(port) as peer:
+    # The peer plays the autopilot's telemetry: with --mav, no target is sent without it (§12 fresh telemetry).
+    with LoopbackAutopilot(port, telemetry=True, position_ned=(0.0, 0.0, -AGL_M)) as peer:
         assert main(["--camera", str(video), "--model", assets["model"], "--mav", f"udpout:127.0.0.1:{port}",
                      "--log", str(log_path), "--allow-unconfirmed"]) == 0
         wait_for(lambda: len(peer.of_type("LANDING_TARGET")) >= 6, 3.0)
