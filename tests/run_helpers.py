@@ -30,6 +30,13 @@ def write_video(path: Path, frames: int = 12, height: int = 96, width: int = 128
     return path
 
 
+def flat_assets(folder: Path, agl_m: float = 10.0, frames: int = 8) -> dict:
+    """What the edge-run tests fly: the flat-ground model ``agl_m`` below and a small video of ``frames``
+    frames, both written into ``folder`` (``{"model": str, "video": str, "dir": folder}``)."""
+    return {"model": str(flat_ground_model(folder / "flat.onnx", agl_m=agl_m)),
+            "video": str(write_video(folder / "v.avi", frames)), "dir": folder}
+
+
 def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))

@@ -23,13 +23,12 @@ from edge_landing.runtime.io.telemetry import ClockOffset, TelemetryBuffer, Tele
 from edge_landing.runtime.pipeline import Continuity, ContinuityConfig, FrameCheck, StageTimes
 from tests.fake_autopilot import FakeAutopilot
 from tests.run_helpers import (
-    flat_ground_model,
+    flat_assets,
     free_tcp_port,
     free_udp_port,
     ground_plane_depth,
     read_decisions,
     wait_for,
-    write_video,
 )
 
 AGL_M = 10.0
@@ -37,9 +36,7 @@ AGL_M = 10.0
 
 @pytest.fixture(scope="module")
 def assets(tmp_path_factory):
-    d = tmp_path_factory.mktemp("safety")
-    return {"model": str(flat_ground_model(d / "flat.onnx", agl_m=AGL_M)), "video": str(write_video(d / "v.avi", 8)),
-            "dir": d}
+    return flat_assets(tmp_path_factory.mktemp("safety"), AGL_M)
 
 
 def syn_dropping_listener():

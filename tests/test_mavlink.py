@@ -24,12 +24,12 @@ from edge_landing.runtime.io.mavlink_link import (
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from tests.run_helpers import (
     LoopbackAutopilot,
+    flat_assets,
     flat_ground_model,
     free_tcp_port,
     free_udp_port,
     read_decisions,
     wait_for,
-    write_video,
 )
 
 AGL_M = 10.0
@@ -37,9 +37,7 @@ AGL_M = 10.0
 
 @pytest.fixture(scope="module")
 def assets(tmp_path_factory):
-    d = tmp_path_factory.mktemp("mav")
-    return {"model": str(flat_ground_model(d / "flat.onnx", agl_m=AGL_M)), "video": str(write_video(d / "v.avi", 8)),
-            "dir": d}
+    return flat_assets(tmp_path_factory.mktemp("mav"), AGL_M)
 
 
 def edge_run(assets, *extra):

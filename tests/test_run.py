@@ -18,16 +18,14 @@ from edge_landing.runtime.perception.calibration_file import SceneCalibration
 from edge_landing.runtime.perception.contract import Task
 from edge_landing.runtime.perception.inference import file_sha256
 from tests.helpers import tiny_onnx_model
-from tests.run_helpers import flat_ground_model, read_decisions, write_video
+from tests.run_helpers import flat_assets, flat_ground_model, read_decisions, write_video
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def assets(tmp_path_factory):
-    d = tmp_path_factory.mktemp("run")
-    return {"model": str(flat_ground_model(d / "flat.onnx", agl_m=10.0)), "video": str(write_video(d / "v.avi", 10)),
-            "dir": d}
+    return flat_assets(tmp_path_factory.mktemp("run"), 10.0, frames=10)
 
 
 def test_video_run_logs_every_decision_records_overlay_and_prints_summary(assets, tmp_path, capsys):

@@ -15,7 +15,7 @@ import pytest
 
 from edge_landing.cli.run import main
 from tests.fake_autopilot import FakeAutopilot
-from tests.run_helpers import flat_ground_model, free_tcp_port, free_udp_port, read_decisions, write_video
+from tests.run_helpers import flat_assets, free_tcp_port, free_udp_port, read_decisions
 
 AGL_M = 10.0
 SWITCH_S = 3.0          # script time at which the dangerous phase starts
@@ -24,9 +24,7 @@ GRACE_S = 1.0           # no target may arrive later than this after the last go
 
 @pytest.fixture(scope="module")
 def assets(tmp_path_factory):
-    d = tmp_path_factory.mktemp("trust")
-    return {"model": str(flat_ground_model(d / "flat.onnx", agl_m=AGL_M)), "video": str(write_video(d / "v.avi", 8)),
-            "dir": d}
+    return flat_assets(tmp_path_factory.mktemp("trust"), AGL_M)
 
 
 def run_against(assets, tmp_path, script, duration_s: float = 5.5, *extra: str, tcp: bool = False
