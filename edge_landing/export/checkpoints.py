@@ -2,10 +2,10 @@
 
 Shared by every architecture of the zoo::
 
-    from edge_landing.export.checkpoints import read_checkpoint, unwrap_state_dict, strip_prefix, load_state_dict_strict
+    from edge_landing.export.checkpoints import read_checkpoint, model_state, load_state_dict_strict
     obj = read_checkpoint(path)                              # torch.load, weights only, one clear error
     with trusted_checkpoints(): obj = read_checkpoint(path)  # full unpickling, for files you trust
-    sd = strip_prefix(unwrap_state_dict(obj, path), "module.")
+    sd = model_state(obj, path)                              # the state_dict, without "module." prefixes
     load_state_dict_strict(model, sd, where=str(path))       # InputError names the parameter and both shapes
 
 SafeUAV checkpoints hold no names, only an ordered list of tensors: ``load_ordered_tensors`` assigns them
@@ -91,6 +91,11 @@ def unwrap_state_dict(obj: object, where: str) -> dict:
 def strip_prefix(state_dict: Mapping[str, torch.Tensor], prefix: str = "module.") -> dict:
     """Remove ``prefix`` from every key that has it (DataParallel saves keys as ``module.<name>``)."""
     return {(k[len(prefix):] if k.startswith(prefix) else k): v for k, v in state_dict.items()}
+
+
+def model_state(obj: object, where: str) -> dict:
+    """The state_dict a checkpoint holds, without DataParallel's ``module.`` prefixes."""
+    return strip_prefix(unwrap_state_dict(obj, where), "module.")
 
 
 def drop_keys(state_dict: Mapping[str, torch.Tensor], prefix: str) -> dict:

@@ -21,13 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from edge_landing.export.checkpoints import (
-    load_state_dict_strict,
-    read_checkpoint,
-    source_info,
-    strip_prefix,
-    unwrap_state_dict,
-)
+from edge_landing.export.checkpoints import load_state_dict_strict, model_state, read_checkpoint, source_info
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.perception.contract import (
     DepthConvention,
@@ -38,14 +32,11 @@ from edge_landing.runtime.perception.contract import (
     Task,
 )
 
+from .common import IMAGENET_MEAN, IMAGENET_STD, INPUT_NAME, OUTPUT_DEPTH, merged_options, upsample_concat
 from .efficientnet import EFFICIENTNET_B5_TF, EfficientNet
 from .registry import ArchSpec, require_task
 
-INPUT_NAME = "image"
 OUTPUT_BIN_EDGES = "bin_edges"
-OUTPUT_DEPTH = "depth"
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 DEFAULT_OPTIONS = {"bins": 256, "min_depth": 1e-3, "max_depth": 10.0}
 
 SIZE_MULTIPLE = 32          # every encoder stage then halves the map exactly, as at the authors' sizes
@@ -110,8 +101,7 @@ class UpSampleBN(nn.Module):
             nn.LeakyReLU(LEAKY_SLOPE))
 
     def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
-        up = F.interpolate(x, size=skip.shape[2:], mode="bilinear", align_corners=True)
-        return self._net(torch.cat([up, skip], dim=1))
+        return self._net(upsample_concat(x, skip, align_corners=True))
 
 
 class DecoderBN(nn.Module):
@@ -211,7 +201,7 @@ def build(task: Task = Task.DEPTH, bins: int = 256, min_depth: float = 1e-3, max
 def contract(task: Task, height: int, width: int, **options) -> ModelContract:
     _check_task(task)
     check_input_size(height, width)
-    opts = {**DEFAULT_OPTIONS, **{k: v for k, v in options.items() if k in DEFAULT_OPTIONS}}
+    opts = merged_options(DEFAULT_OPTIONS, options)
     return ModelContract(
         arch="adabins", task=Task.DEPTH,
         input=InputSpec(name=INPUT_NAME, layout=Layout.NCHW, height=height, width=width, scale=1.0 / 255.0,
@@ -242,7 +232,7 @@ def load_checkpoint(module: nn.Module, path) -> dict:
     ``module.`` prefixes and with the older mViT module names; strict by name and shape."""
     where = str(path)
     obj = read_checkpoint(path)
-    state, renamed = rename_old_keys(strip_prefix(unwrap_state_dict(obj, where), "module."))
+    state, renamed = rename_old_keys(model_state(obj, where))
     load_state_dict_strict(module, state, where)
     info = {**source_info(Path(path)), "format": "adabins-pytorch-checkpoint", "renamed_old_keys": renamed}
     if isinstance(obj, dict) and isinstance(obj.get("epoch"), int):

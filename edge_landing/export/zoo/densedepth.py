@@ -27,19 +27,11 @@ from edge_landing.runtime.perception.contract import (
     Task,
 )
 
-from ..checkpoints import (
-    drop_keys,
-    load_state_dict_strict,
-    read_checkpoint,
-    source_info,
-    strip_prefix,
-    unwrap_state_dict,
-)
+from ..checkpoints import drop_keys, load_state_dict_strict, model_state, read_checkpoint, source_info
+from .common import INPUT_NAME, OUTPUT_DEPTH, merged_options, upsample_concat
 from .densenet import DENSENET169, DenseNet
 from .registry import ArchSpec, require_task
 
-OUTPUT_DEPTH = "depth"
-INPUT_NAME = "image"
 CLASSIFIER_PREFIX = "encoder.original_model.classifier."
 # DenseNet-169 feature modules whose outputs the decoder reads, finest first (H/2, H/4, H/8, H/16).
 SKIP_POINTS = ("relu0", "pool0", "transition1", "transition2")
@@ -71,8 +63,7 @@ class UpSample(nn.Module):
         self.leakyreluB = nn.LeakyReLU(0.2)
 
     def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
-        up = F.interpolate(x, size=skip.shape[2:], mode="bilinear", align_corners=True)
-        return self.leakyreluB(self.convB(self.convA(torch.cat([up, skip], dim=1))))
+        return self.leakyreluB(self.convB(self.convA(upsample_concat(x, skip, align_corners=True))))
 
 
 class Decoder(nn.Module):
@@ -116,7 +107,7 @@ def build(task: Task = Task.DEPTH, **options) -> DenseDepth:
 
 def contract(task: Task, height: int, width: int, **options) -> ModelContract:
     _check_task(task)
-    opts = {**DEFAULT_OPTIONS, **{k: v for k, v in options.items() if k in DEFAULT_OPTIONS}}
+    opts = merged_options(DEFAULT_OPTIONS, options)
     return ModelContract(
         arch="densedepth", task=Task.DEPTH,
         input=InputSpec(name=INPUT_NAME, layout=Layout.NCHW, height=height, width=width),
@@ -132,7 +123,7 @@ def output_names(task: Task) -> Tuple[str, ...]:
 def load_checkpoint(module: nn.Module, path) -> dict:
     """The authors' PyTorch state_dict (with or without the unused classifier, with or without ``module.``)."""
     where = str(path)
-    state = strip_prefix(unwrap_state_dict(read_checkpoint(path), where), "module.")
+    state = model_state(read_checkpoint(path), where)
     had_classifier = any(k.startswith(CLASSIFIER_PREFIX) for k in state)
     load_state_dict_strict(module, drop_keys(state, CLASSIFIER_PREFIX), where)
     return {**source_info(Path(path)), "format": "densedepth-pytorch-state_dict",

@@ -16,10 +16,9 @@ from typing import Tuple
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.perception.contract import DepthConvention, DepthSpec, InputSpec, Layout, ModelContract, Task
 
+from .common import IMAGENET_MEAN, IMAGENET_STD, INPUT_NAME, OUTPUT_DEPTH
 from .registry import ArchSpec, require_task
 
-INPUT_NAME, OUTPUT_DEPTH = "image", "depth"
-IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
 # depth-anything/Depth-Anything-V2-Small-hf config.json (the published Small sizes)
 SMALL = {"hidden_size": 384, "num_hidden_layers": 12, "num_attention_heads": 6, "patch_size": 14,
          "out_indices": [3, 6, 9, 12], "neck_hidden_sizes": [48, 96, 192, 384], "fusion_hidden_size": 64,

@@ -38,7 +38,6 @@ from typing import Tuple, cast
 
 import torch
 from torch import nn
-from torch.nn import functional as F
 
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.perception.contract import (
@@ -51,22 +50,12 @@ from edge_landing.runtime.perception.contract import (
     Task,
 )
 
-from ..checkpoints import (
-    load_state_dict_strict,
-    read_checkpoint,
-    source_info,
-    strip_prefix,
-    unwrap_state_dict,
-)
+from ..checkpoints import load_state_dict_strict, model_state, read_checkpoint, source_info
+from .common import IMAGENET_MEAN, IMAGENET_STD, INPUT_NAME, OUTPUT_DEPTH, OUTPUT_HVO, merged_options, upsample_concat
 from .registry import ArchSpec
 
 log = logging.getLogger(__name__)
 
-INPUT_NAME = "image"
-OUTPUT_DEPTH = "depth"
-OUTPUT_HVO = "hvo_logits"
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 # Depth range of the product (30–90 m above ground at 45° pitch: ~30 m below to ~1 km at the top rows).
 DEFAULT_OPTIONS = {"channels": 16, "min_depth": 1.0, "max_depth": 1000.0}
 OUTPUT_STRIDE = 2
@@ -97,8 +86,7 @@ class UpFuse(nn.Module):
         self.conv = ConvBNReLU(c_in + c_skip, c_out)
 
     def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
-        x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
-        return self.conv(torch.cat([x, skip], dim=1))
+        return self.conv(upsample_concat(x, skip, align_corners=False))
 
 
 class Head(nn.Sequential):
@@ -158,13 +146,13 @@ def output_names(task: Task) -> Tuple[str, ...]:
 
 
 def build(task: Task = Task.DEPTH_HVO, **options) -> EdgeNet:
-    opts = {**DEFAULT_OPTIONS, **{k: v for k, v in options.items() if k in DEFAULT_OPTIONS}}
+    opts = merged_options(DEFAULT_OPTIONS, options)
     return EdgeNet(task, channels=int(opts["channels"]), min_depth=float(opts["min_depth"]),
                    max_depth=float(opts["max_depth"]))
 
 
 def contract(task: Task, height: int, width: int, **options) -> ModelContract:
-    opts = {**DEFAULT_OPTIONS, **{k: v for k, v in options.items() if k in DEFAULT_OPTIONS}}
+    opts = merged_options(DEFAULT_OPTIONS, options)
     return ModelContract(
         arch="edgenet", task=task,
         input=InputSpec(name=INPUT_NAME, layout=Layout.NCHW, height=height, width=width,
@@ -179,7 +167,7 @@ def load_checkpoint(module: nn.Module, path) -> dict:
     """Our training checkpoints (export/train.py): a dict with the state_dict under "model"."""
     where = str(path)
     obj = read_checkpoint(path)
-    load_state_dict_strict(module, strip_prefix(unwrap_state_dict(obj, where), "module."), where)
+    load_state_dict_strict(module, model_state(obj, where), where)
     info = source_info(Path(path))
     if isinstance(obj, dict):
         # export/train.py stores its config and history as JSON strings: carry them into edge.source.
@@ -239,7 +227,7 @@ def widen_state_dict(narrow: dict, model: nn.Module) -> dict:
 def init_checkpoint(module: nn.Module, path) -> dict:
     """``edge-train --init``: our checkpoint, widened first when it was trained at a smaller base width."""
     where = str(path)
-    state = strip_prefix(unwrap_state_dict(read_checkpoint(path), where), "module.")
+    state = model_state(read_checkpoint(path), where)
     narrow_width = state["stem.0.0.weight"].shape[0] if "stem.0.0.weight" in state else None
     wide_width = module.state_dict()["stem.0.0.weight"].shape[0]
     if narrow_width is None or narrow_width >= wide_width:

@@ -35,11 +35,9 @@ from ..checkpoints import (
     read_checkpoint,
     source_info,
 )
+from .common import INPUT_NAME, OUTPUT_DEPTH, OUTPUT_HVO, merged_options
 from .registry import ArchSpec
 
-INPUT_NAME = "image"
-OUTPUT_HVO = "hvo_logits"
-OUTPUT_DEPTH = "depth"
 MAX_DEPTH_M = 323.485          # the dataset's depth normaliser: target = metres / 323.485
 DEFAULT_OPTIONS = {"min_depth": 0.1, "max_depth": MAX_DEPTH_M}
 DILATIONS = (1, 2, 4, 8, 16, 32)
@@ -207,7 +205,7 @@ def output_names(task: Task) -> Tuple[str, ...]:
 def _contract_for(arch: str):
     def contract(task: Task, height: int, width: int, **options) -> ModelContract:
         _out_channels(task)
-        opts = {**DEFAULT_OPTIONS, **{k: v for k, v in options.items() if k in DEFAULT_OPTIONS}}
+        opts = merged_options(DEFAULT_OPTIONS, options)
         return ModelContract(
             arch=arch, task=task,
             input=InputSpec(name=INPUT_NAME, layout=Layout.NHWC, height=height, width=width),
