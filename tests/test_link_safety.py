@@ -170,15 +170,22 @@ def test_stage_times_are_bounded():
     assert times.percentiles_ms("total", (50,))[0] == pytest.approx(3.0)
 
 
-def test_truncated_jpeg_is_an_invalid_frame_with_a_reason(tmp_path):
-    rng = np.random.default_rng(0)
+def jpeg_folder_with_a_truncated_one(tmp_path, frames: int, truncated: int, seed: int):
+    """``frames`` copies of one blurred random 128×96 image as 0.jpg, 1.jpg, ...; ``truncated``.jpg is cut
+    to 40 % of its bytes (a camera that wrote only part of the file)."""
+    rng = np.random.default_rng(seed)
     img = cv2.GaussianBlur(rng.integers(0, 255, (96, 128, 3)).astype(np.uint8), (9, 9), 3)
     folder = tmp_path / "frames"
     folder.mkdir()
-    for i in range(3):
+    for i in range(frames):
         cv2.imwrite(str(folder / f"{i}.jpg"), img)
-    data = (folder / "1.jpg").read_bytes()
-    (folder / "1.jpg").write_bytes(data[:int(0.4 * len(data))])
+    data = (folder / f"{truncated}.jpg").read_bytes()
+    (folder / f"{truncated}.jpg").write_bytes(data[:int(0.4 * len(data))])
+    return folder
+
+
+def test_truncated_jpeg_is_an_invalid_frame_with_a_reason(tmp_path):
+    folder = jpeg_folder_with_a_truncated_one(tmp_path, frames=3, truncated=1, seed=0)
     grabber = Grabber(SourceConfig(str(folder), SourceKind.FOLDER)).start()
     try:
         frames = [grabber.next(2.0) for _ in range(3)]
@@ -199,14 +206,7 @@ def test_frame_size_changes_are_rescaled_or_invalid(caplog):
 
 
 def test_truncated_jpeg_in_a_run_gives_no_target_for_that_frame(assets, tmp_path):
-    rng = np.random.default_rng(1)
-    img = cv2.GaussianBlur(rng.integers(0, 255, (96, 128, 3)).astype(np.uint8), (9, 9), 3)
-    folder = tmp_path / "frames"
-    folder.mkdir()
-    for i in range(4):
-        cv2.imwrite(str(folder / f"{i}.jpg"), img)
-    data = (folder / "2.jpg").read_bytes()
-    (folder / "2.jpg").write_bytes(data[:int(0.4 * len(data))])
+    folder = jpeg_folder_with_a_truncated_one(tmp_path, frames=4, truncated=2, seed=1)
     log_path = tmp_path / "t.jsonl"
     assert main(["--camera", str(folder), "--model", assets["model"], "--log", str(log_path),
                  "--allow-unconfirmed"]) == 0  # still images: no motion for geometry
