@@ -112,10 +112,11 @@ def short_flights(tmp_path_factory):
     """One 30-frame flight over an unseen urban world (not among the shipped model's training seeds) at each
     size, through model -> altitude scale -> NED fusion, every target judged against the world by ray
     casting (benchmarks/landing_truth.py). On this flight the 320×240 run sends only safe targets; other
-    worlds have fusion-level failure episodes at every size (benchmarks/resolution_sweep.py)."""
+    worlds have fusion-level failure episodes at every size (benchmarks/resolution_sweep.py). Network spots
+    are taken unconfirmed (no motion geometry): these tests compare the network's chain across sizes."""
     from edge_landing.benchmarks.resolution_sweep import SweepConfig, fly
 
-    cfg = SweepConfig(tmp_path_factory.mktemp("resolution_flights"), frames=30, pixel_every=5)
+    cfg = SweepConfig(tmp_path_factory.mktemp("resolution_flights"), frames=30, pixel_every=5, geometry=False)
     world = sim.build_world("urban", 13)
     return {(w, h): fly(cfg, "urban", 13, w, h, world=world) for w, h in SIZES}
 
@@ -147,7 +148,8 @@ def test_long_flights_as_safe_at_640_and_1280_as_at_320(tmp_path_factory, style,
 
     from edge_landing.benchmarks.resolution_sweep import SweepConfig, fly
 
-    cfg = SweepConfig(Path(tmp_path_factory.getbasetemp()) / "resolution_long", frames=200, pixel_every=10)
+    cfg = SweepConfig(Path(tmp_path_factory.getbasetemp()) / "resolution_long", frames=200, pixel_every=10,
+                      geometry=False)
     base = fly(cfg, style, seed, 320, 240)
     for width, height in SIZES[1:]:
         r = fly(cfg, style, seed, width, height)

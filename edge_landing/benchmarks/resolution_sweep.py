@@ -44,6 +44,8 @@ class SweepConfig:
     pixel_every: int = 5                        # per-pixel scores on every n-th frame (0: none)
     video: bool = True                          # replay flight.mp4 (the user's path); False: the lossless PNGs
     model: Optional[str] = None                 # default: the shipped model
+    geometry: bool = True                       # motion geometry confirms spots, as edge-run does (§11);
+                                                # False: every network spot counts (the network alone)
 
 
 @dataclass
@@ -136,10 +138,10 @@ def fly(config: SweepConfig, style: str, seed: int, width: int, height: int, mod
         world = sim.build_world(style, seed)
     states = PoseReplayReader.states_from_csv(str(folder / "poses.csv"))
     intrinsics, mount = Intrinsics.from_hfov(width, height, math.radians(90.0)), Mount()
-    # The sweep compares the network across camera sizes, so its spots are taken unconfirmed; motion geometry
-    # is measured by benchmarks/lying_model and bench_motion (ARCHITECTURE.md §11).
+    # With geometry the frame goes to fusion as edge-run gives it (motion geometry works on the camera frame at
+    # its own size); without, the network's spots are taken unconfirmed, to compare the network across sizes.
     fusion_cfg = FusionConfig(vehicle_radius_m=config.clearance_m / 2, margin_m=config.clearance_m / 2,
-                              allow_unconfirmed=True)
+                              allow_unconfirmed=not config.geometry)
     fuser = LandingFuser(fusion_cfg, intrinsics, mount)
     scale = ScaleStage(None, AltitudeScaleEstimator(), intrinsics, mount)
     truth = TruthConfig("", style, seed, config.clearance_m)
@@ -157,7 +159,7 @@ def fly(config: SweepConfig, style: str, seed: int, width: int, height: int, mod
             v, w_, rel = _pixel_scores(pred, folder, k)
             voted, wrong = voted + v, wrong + w_
             rels.append(rel)
-        target = fuser.update(scale.apply(pred, state), state, None)
+        target = fuser.update(scale.apply(pred, state), state, state.time_s, rgb if config.geometry else None)
         result.frames += 1
         if target.valid and target.position_ned_m is not None:
             ok, why = check_target(world, float(target.position_ned_m[0]), float(target.position_ned_m[1]), truth)
@@ -223,12 +225,14 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--sizes", nargs="+", default=[f"{w}x{h}" for w, h in SIZES])
     p.add_argument("--frames", type=int, default=100)
     p.add_argument("--png", action="store_true", help="replay the lossless PNGs instead of flight.mp4")
+    p.add_argument("--network-only", action="store_true", help="count every network spot (no motion geometry), "
+                   "to compare the network alone across sizes")
     p.add_argument("--json", help="also write the results here")
     a = p.parse_args(argv)
     if a.frames < 10:
         raise InputError(f"--frames must be at least 10 (a flight needs approach, hover and descent), got {a.frames}")
     config = SweepConfig(Path(a.out), tuple(a.styles), tuple(a.seeds), tuple(_size(s) for s in a.sizes),
-                         a.frames, video=not a.png)
+                         a.frames, video=not a.png, geometry=not a.network_only)
     results = sweep(config)
     print(table(results))
     if a.json:
