@@ -129,6 +129,7 @@ def fly(config: SweepConfig, style: str, seed: int, width: int, height: int, mod
     from edge_landing.runtime.perception.input_fit import describe_for_model
     from edge_landing.runtime.perception.scale import AltitudeScaleEstimator
     from edge_landing.runtime.pipeline import ScaleStage
+    from edge_landing.runtime.pipeline.trust import Continuity, ContinuityConfig
 
     folder = render(style, seed, width, height, config.frames, Path(config.out))
     model = model or OnnxModel.load(config.model or default_model_path(), threads=2)
@@ -139,10 +140,12 @@ def fly(config: SweepConfig, style: str, seed: int, width: int, height: int, mod
     states = PoseReplayReader.states_from_csv(str(folder / "poses.csv"))
     intrinsics, mount = Intrinsics.from_hfov(width, height, math.radians(90.0)), Mount()
     # With geometry the frame goes to fusion as edge-run gives it (motion geometry works on the camera frame at
-    # its own size); without, the network's spots are taken unconfirmed, to compare the network across sizes.
+    # its own size) and the trust rules' continuity re-sends committed spots, as edge-run does; without, the
+    # network's spots are taken unconfirmed, to compare the network across sizes.
     fusion_cfg = FusionConfig(vehicle_radius_m=config.clearance_m / 2, margin_m=config.clearance_m / 2,
                               allow_unconfirmed=not config.geometry)
     fuser = LandingFuser(fusion_cfg, intrinsics, mount)
+    continuity = Continuity(ContinuityConfig(min_clearance_m=config.clearance_m)) if config.geometry else None
     scale = ScaleStage(None, AltitudeScaleEstimator(), intrinsics, mount)
     truth = TruthConfig("", style, seed, config.clearance_m)
     result = FlightResult(style, seed, width, height, 0)
@@ -159,7 +162,10 @@ def fly(config: SweepConfig, style: str, seed: int, width: int, height: int, mod
             v, w_, rel = _pixel_scores(pred, folder, k)
             voted, wrong = voted + v, wrong + w_
             rels.append(rel)
-        target = fuser.update(scale.apply(pred, state), state, state.time_s, rgb if config.geometry else None)
+        fused = fuser.fuse(scale.apply(pred, state), state, state.time_s, rgb if config.geometry else None)
+        target = fused.target
+        if continuity is not None:  # what edge-run sends: a committed spot is re-sent from memory (§12)
+            target, _ = continuity.step(target, state, fused.grid, reached_fusion=pred.valid)
         result.frames += 1
         if target.valid and target.position_ned_m is not None:
             ok, why = check_target(world, float(target.position_ned_m[0]), float(target.position_ned_m[1]), truth)
