@@ -5,7 +5,9 @@ For each frame of an ``edge-sim --flight`` flight (rendered on the fly, poses as
   plane at the telemetry height above ground, HVO = horizontal everywhere;
 - ``shipped``: the shipped EdgeNet with the in-flight altitude scale, as edge-run runs it.
 Each is fused twice: with motion geometry (the default: only geometry-confirmed spots are sent) and without
-it (the network's spot is sent, as before geometry existed). Every sent target is judged by ray casting
+it (the network's spot is sent, as before geometry existed). ``sent`` is what edge-run sends with telemetry:
+the geometry-confirmed targets through the continuity of ARCHITECTURE.md §12 (a committed spot is re-sent
+from memory on frames without a fresh confirmation). Every sent target is judged by ray casting
 against the world (benchmarks/landing_truth.check_target). Also: motion geometry alone, per cell, against
 the world's heights (recall of obstacles >= 1 m among cells it measured to <= 1 m, at 30-60 m AGL).
 
@@ -40,6 +42,7 @@ class ReplayConfig:
     hazards: bool = True              # hazard-rich worlds (sim.hazards)
     width: int = 320                  # camera size: the networks see it resized, motion geometry crops it
     height: int = 240
+    trace: str = ""                   # JSON lines, one per frame and model: why a target was (not) sent
 
 
 def lying_prediction(intr: Intrinsics, mount: Mount, state: VehicleState, frame_id: int) -> Prediction:
@@ -99,23 +102,32 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
     renderer = sim.Renderer(world, intr, mount)
     fusion = FusionConfig(obstacle_height_m=cfg.obstacle_height_m)
     truth = TruthConfig(log="", clearance_m=fusion.required_clearance_m)
+    from edge_landing.runtime.pipeline.trust import Continuity
+
     runs: dict[str, Any] = {}
     for name in cfg.models:
-        runs[name] = {"geometry": LandingFuser(fusion, intr, mount),
+        runs[name] = {"continuity": Continuity(),
+                      "geometry": LandingFuser(fusion, intr, mount),
                       "network": LandingFuser(replace(fusion, allow_unconfirmed=True), intr, mount),
                       "model": _Shipped(intr, mount) if name == "shipped" else None}
-    stats: dict[str, Any] = {name: {kind: {"targets": 0, "safe": 0, "failures": []} for kind in ("geometry", "network")}
+    stats: dict[str, Any] = {name: {kind: {"targets": 0, "safe": 0, "failures": []} for kind in ("geometry", "sent", "network")}
              for name in cfg.models}
     recall = {name: [0, 0, 0, 0] for name in cfg.models}
     geo_ms: list[float] = []
+    trace = open(cfg.trace, "w") if cfg.trace else None
+    n_app, n_hov = int(round(cfg.frames * 0.4)), int(round(cfg.frames * 0.2))   # sim.flight's phases
     for k, s in enumerate(vehicle_samples(scfg, world)):
         r = render_sample(scfg, k, s, renderer)
         state = VehicleState(s.t_s, s.attitude, s.position_ned_m.copy(), s.agl_m, "sim")
         for name, run in runs.items():
             pred = lying_prediction(intr, mount, state, k) if run["model"] is None else run["model"](r.rgb, state, k)
-            for kind in ("geometry", "network"):
-                fuser = run[kind]
-                target = fuser.update(pred, state, s.t_s, r.rgb if kind == "geometry" else None)
+            for kind in ("geometry", "sent", "network"):
+                fuser = run["geometry" if kind == "sent" else kind]
+                if kind == "sent":
+                    target, _ = run["continuity"].step(target, state, fused.grid, True)
+                else:
+                    fused = fuser.fuse(pred, state, s.t_s, r.rgb if kind == "geometry" else None)
+                    target = fused.target
                 if kind == "geometry" and "geometry" in target.timings_s:
                     geo_ms.append(1e3 * target.timings_s["geometry"])
                 if target.valid and target.position_ned_m is not None:
@@ -126,14 +138,36 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
                     st["safe"] += ok
                     if not ok:
                         st["failures"].append({"frame": k, "why": why})
+                if trace is not None and kind == "geometry":
+                    trace.write(json.dumps(_trace_row(k, n_app, n_hov, name, s, target, fuser)) + "\n")
             if k % cfg.recall_every == 0:
                 counts = cell_recall(world, run["geometry"], s.agl_m)
                 if counts is not None:
                     recall[name] = [a + b for a, b in zip(recall[name], counts)]
         if progress and k % 20 == 0:
             print(f"  frame {k}/{cfg.frames}", flush=True)
+    if trace is not None:
+        trace.close()
     return {"config": cfg.__dict__, "frames": cfg.frames, "stats": stats, "recall": recall,
             "geometry_ms_p50": float(np.median(geo_ms)) if geo_ms else math.nan}
+
+
+def _trace_row(k: int, n_app: int, n_hov: int, name: str, s: Any, target: Any, fuser: LandingFuser
+               ) -> dict[str, Any]:
+    """One frame of one model, for diagnosis: phase, target or reason, what the motion stage measured."""
+    res = fuser.motion.last
+    row: dict[str, Any] = {
+        "frame": k, "model": name, "phase": "approach" if k < n_app else "hover" if k < n_app + n_hov else "descent",
+        "agl_m": round(float(s.agl_m), 1), "valid": bool(target.valid), "reason": target.reason,
+        "evidence": target.evidence, "motion": fuser.motion.last_reason}
+    if res is not None:
+        det = res.detectable_m[np.isfinite(res.detectable_m)]
+        row.update(baseline_m=round(res.baseline_m, 2), ref_age_s=round(res.reference_age_s, 2),
+                   noise_px=round(res.flow_noise_px, 3), measurable=round(det.size / res.detectable_m.size, 3),
+                   det_p50_m=round(float(np.median(det)), 3) if det.size else None,
+                   plane_m=None if fuser.motion.ground_down_m is None
+                   else round(fuser.motion.ground_down_m - float(s.position_ned_m[2]), 1))
+    return row
 
 
 def _summary(result: dict[str, Any]) -> str:
@@ -163,10 +197,11 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"), help="camera size")
     p.add_argument("--no-hazards", action="store_true", help="the plain towns (no sim.hazards)")
     p.add_argument("--json", help="write the result here")
+    p.add_argument("--trace", default="", help="write one JSON line per frame and model (reasons, motion figures)")
     a = p.parse_args(argv)
     result = replay(ReplayConfig(a.style, a.seed, a.frames, models=tuple(a.models),
                                  obstacle_height_m=a.obstacle_height, width=a.size[0], height=a.size[1],
-                                 hazards=not a.no_hazards),
+                                 hazards=not a.no_hazards, trace=a.trace),
                     progress=True)
     print(f"{a.style} seed {a.seed}, {a.frames} frames, camera {a.size[0]}x{a.size[1]}")
     print(_summary(result))

@@ -84,6 +84,7 @@ class MotionConfig:
     max_cross_parallax_px: float = 1.5   # residual across the epipolar direction beyond this = no evidence
     max_sigma_h_m: float = 1.0           # pixels noisier than this are left out of the terrain fit
     min_agl_m: float = 2.0               # below this the plane model is not used
+    max_plane_noise_px: float = 0.6      # a pair noisier than this does not update the ground plane's level
     def __post_init__(self) -> None:
         h, w = self.window_hw
         if h < 32 or w < 32 or self.max_width_px < 32:
@@ -91,7 +92,7 @@ class MotionConfig:
                              f"{self.max_width_px})")
         for name in ("history_s", "flow_noise_px", "detect_sigmas", "max_range_m", "max_photometric_error",
                      "max_cross_parallax_px", "max_sigma_h_m", "min_agl_m", "enough_detect_m",
-                     "max_patch_footprint_m"):
+                     "max_patch_footprint_m", "max_plane_noise_px"):
             if not getattr(self, name) > 0:
                 raise InputError(f"motion {name} must be > 0, got {getattr(self, name)}")
         if self.max_frames < 2:
@@ -142,6 +143,10 @@ class ParallaxResult:
     reference_age_s: float
     ground_fit: np.ndarray           # quadratic terrain coefficients (1, n, e, n², ne, e²), n/e in 100 m
     flow_noise_px: float = float("nan")  # the flow noise used: measured across the epipolar lines, floored
+    # Pixels the reference frame saw but the plane-plus-parallax model could not explain (photometric or
+    # across-epipolar mismatch: occlusion by something tall, a parallax beyond the flow's reach). Pixels
+    # outside the reference frame or beyond max_range_m are neither measured nor unexplained: no evidence.
+    unexplained: Optional[np.ndarray] = None
 
 
 def plane_homography(k: np.ndarray, cur: CameraPose, ref: CameraPose) -> tuple[np.ndarray, np.ndarray, np.ndarray,
@@ -211,10 +216,32 @@ class MotionStage:
         self._norm = ((xx - self.k_cv[0, 2]) / i.fx, (yy - self.k_cv[1, 2]) / i.fy)
         self.last: Optional[ParallaxResult] = None
         self.last_reason = ""
+        self._ground: Optional[tuple[float, float]] = None   # (time, NED down of the local ground last measured)
+
+    @property
+    def ground_down_m(self) -> Optional[float]:
+        """NED down of the local ground last measured (None: not yet; the rangefinder's plane is used)."""
+        return None if self._ground is None else self._ground[1]
 
     def reset(self) -> None:
         self._history.clear()
         self.last, self.last_reason = None, ""
+        self._ground = None
+
+    def _plane_pose(self, pose: CameraPose, time_s: float) -> CameraPose:
+        """The pose with the plane at the ground last measured near the spot, when recent.
+
+        A rangefinder reads the first surface below the vehicle (a roof when flying over a house): a plane
+        there, tens of metres above the ground the camera looks at, leaves the ground with a parallax the
+        flow cannot follow. The ground's level in NED, measured from the last frame pair, stays valid while
+        the vehicle moves; heights do not depend on the plane chosen (the plane only has to be close).
+        """
+        if self._ground is None or not 0.0 <= time_s - self._ground[0] <= self.config.history_s:
+            return pose
+        d = self._ground[1] - float(pose.position_ned_m[2])
+        if not d >= self.config.min_agl_m:
+            return pose
+        return CameraPose(pose.r_nc, pose.position_ned_m, d)
 
     def grey(self, image: np.ndarray) -> np.ndarray:
         """RGB (or grey) uint8 image at any size -> grey uint8 at the stage's size, undistorted."""
@@ -241,6 +268,7 @@ class MotionStage:
             self.last_reason = f"height above ground {pose.agl_m} m unusable (need >= {cfg.min_agl_m} m)"
             return None
         grey = self.grey(image)
+        pose = self._plane_pose(pose, time_s)
         while self._history and (time_s - self._history[0].time_s > cfg.history_s
                                  or self._history[0].time_s >= time_s):
             self._history.popleft()
@@ -373,22 +401,38 @@ class MotionStage:
         hgt, gnorm, cross = hgt.reshape(shape), gnorm.reshape(shape), cross.reshape(shape)
         # The residual across the epipolar direction is flow error only (parallax lies along it): its robust
         # spread is this pair's flow noise, used when above the configured floor.
-        matchable = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error)
+        matched_ok = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error)
         noise_px = cfg.flow_noise_px
-        if int(matchable.sum()) >= 100:
-            noise_px = max(noise_px, 1.4826 * float(np.median(cross[matchable])) * f)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sigma0 = d * (noise_px / f) / gnorm
-        # NED point of each pixel at its measured height (the plane point where there is no height).
-        lam_scale = np.where(np.isfinite(hgt), np.clip(1.0 - hgt / d, 0.05, 1.0), 1.0)
+        if int(matched_ok.sum()) >= 100:
+            noise_px = max(noise_px, 1.4826 * float(np.median(cross[matched_ok])) * f)
+        explained = matched_ok & (cross * f <= max(cfg.max_cross_parallax_px, 3 * noise_px))
+        # NED point of each pixel at its measured height (the plane point where the flow is not trusted). The
+        # height may be negative (ground below the plane: the point is farther along its ray than the plane's).
+        lam_scale = np.where(explained, np.clip(1.0 - np.where(explained, hgt, 0.0) / d, 0.05, 20.0), 1.0)
         ned, nx = self._ned_points(pose, xc, lam_scale.reshape(-1))
         ned = ned.reshape((3,) + shape)
         near = (nx.reshape(shape) > 0) & (np.hypot(ned[0] - pose.position_ned_m[0],
                                                    ned[1] - pose.position_ned_m[1]) <= cfg.max_range_m)
-        reliable = near & in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error) \
-            & (cross * f <= max(cfg.max_cross_parallax_px, 3 * noise_px))
-        fit = _fit_ground(ned, hgt, sigma0, reliable & (sigma0 <= cfg.max_sigma_h_m), pose.position_ned_m)
-        local = hgt - _ground_surface(fit, ned, pose.position_ned_m)
+        reliable = near & explained
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sigma_plane = d * (noise_px / f) / gnorm
+        fit = _fit_ground(ned, hgt, sigma_plane, reliable & (sigma_plane <= cfg.max_sigma_h_m), pose.position_ned_m)
+        ground = _ground_surface(fit, ned, pose.position_ned_m)
+        local = hgt - ground
+        # dh/ds = (d - h)^2 / d: the plane's sensitivity holds only at the plane; ground below it (a rangefinder
+        # reading a roof, a slope) is measured with the error of its own, larger, range.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sigma0 = np.maximum(d - ground, 0.1 * d) ** 2 / d * (noise_px / f) / gnorm
+            # The across-epipolar spread misses errors along the epipolar lines (perspective change between
+            # the pair, DIS's smoothing): the measured heights' own robust spread, in units of sigma0, corrects
+            # it (obstacles are a minority of the pixels; they can only inflate it, the safe direction).
+            z = np.abs(local) / sigma0
+        usable = reliable & np.isfinite(z)
+        if int(usable.sum()) >= 100:
+            scale = 1.4826 * float(np.median(z[usable]))
+            if scale > 1.0:
+                sigma0 = sigma0 * scale
+                noise_px *= scale
         height = np.where(reliable, local, np.nan).astype(np.float32)
         patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)
         rng = np.sqrt((ned[0] - pose.position_ned_m[0]) ** 2 + (ned[1] - pose.position_ned_m[1]) ** 2
@@ -398,8 +442,12 @@ class MotionStage:
         out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
         baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))
         self.last_reason = ""
+        # Only a pair whose flow held (noise near the floor, most of the window explained) may move the plane:
+        # a failed pair's fit is noise, and a plane set from it would spoil the next pairs too.
+        if np.any(fit != 0.0) and noise_px <= cfg.max_plane_noise_px and usable.mean() >= 0.5:
+            self._ground = (time_s, float(pose.position_ned_m[2] + d - np.median(ground[usable])))
         return ParallaxResult(time_s, rs, cs, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
-                              time_s - ref.time_s, fit, noise_px)
+                              time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & ~explained)
 
     def _ned_points(self, pose: CameraPose, xc: np.ndarray, lam_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])

@@ -49,7 +49,7 @@ class GeometryGrid:
 
     def __init__(self, cell_m: float, radius_m: float, memory_s: float, obstacle_height_m: float,
                  detect_sigmas: float = 3.0, obstacle_vote_share: float = 0.3, max_unexplained_share: float = 0.1,
-                 grow_m: float = 1.0):
+                 grow_m: float = 1.0, min_high_share: float = 0.25):
         self.cell_m = float(cell_m)
         self.size = max(3, int(math.ceil(2.0 * radius_m / cell_m)))
         self.memory_s = float(memory_s)
@@ -58,6 +58,12 @@ class GeometryGrid:
         self.obstacle_vote_share = float(obstacle_vote_share)
         self.max_unexplained_share = float(max_unexplained_share)
         self.grow_m = float(grow_m)
+        self.min_high_share = float(min_high_share)
+        # A pixel covers up to a few cells on the ground at range, and flow smears an obstacle's edge into the
+        # ground around it (its top is placed at a height read low): obstacles are grown by ``grow_m`` after
+        # the vote (growing each frame's outliers before it made most open ground an "obstacle").
+        k = 2 * max(1, int(math.ceil(self.grow_m / self.cell_m))) + 1
+        self._grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
         self.north0_m = -self.size * self.cell_m / 2.0
         self.east0_m = -self.size * self.cell_m / 2.0
         self._time_s: Optional[float] = None
@@ -130,23 +136,30 @@ class GeometryGrid:
         r, c = r[inside], c[inside]
         hgt = result.height_m[ok][inside]
         det = result.detectable_m[ok][inside]
+        sigma = result.sigma_m[ok][inside]
         r0, r1, c0, c1 = max(int(r.min()) - 1, 0), min(int(r.max()) + 2, self.size), \
             max(int(c.min()) - 1, 0), min(int(c.max()) + 2, self.size)
         rows, cols = r1 - r0, c1 - c0
         idx = (r - r0) * cols + (c - c0)
         n = rows * cols
-        reliable = np.isfinite(det)
-        n_rel = np.bincount(idx[reliable], minlength=n)
-        n_unrel = np.bincount(idx[~reliable], minlength=n)
+        # Measured: a height (finite); confirmable only where also resolved (finite detectable height: the
+        # patch's footprint is small enough). Unexplained: the model failed where the reference did see it.
+        measured_px = np.isfinite(hgt)
+        unexplained_px = ~np.isfinite(det) if result.unexplained is None else result.unexplained[ok][inside]
+        n_rel = np.bincount(idx[measured_px], minlength=n)
+        n_unrel = np.bincount(idx[unexplained_px & ~measured_px], minlength=n)
         worst = np.full(n, -np.inf, np.float32)
-        np.maximum.at(worst, idx[reliable], det[reliable])
-        sigma = det / np.float32(self.detect_sigmas)
+        np.maximum.at(worst, idx[measured_px], det[measured_px])   # inf when a pixel of the cell is unresolved
         with np.errstate(invalid="ignore"):
             # Both signs: a landing site must be flat, and a drop (a gap between packed cars seen as the
             # "ground" at their roofs, a roof's edge, a ditch) is as disqualifying as something standing up.
+            # Unresolved pixels report obstacles too (a smoothed obstacle still reads high, only lower).
             dev = np.abs(hgt)
-            high_px = reliable & (dev >= 0.5 * self.obstacle_height_m) & (dev >= self.detect_sigmas * sigma)
-        high = np.bincount(idx[high_px], minlength=n).reshape(rows, cols) > 0
+            high_px = measured_px & (dev >= 0.5 * self.obstacle_height_m) & (dev >= self.detect_sigmas * sigma)
+        # Flow errors are heavy-tailed (a few % of pixels on open ground pass 3σ): a cell stands out in this
+        # frame when a quarter of its pixels do (any one, for cells of up to four pixels, at long range).
+        n_high = np.bincount(idx[high_px], minlength=n)
+        high = ((n_high > 0) & (n_high >= self.min_high_share * n_rel)).reshape(rows, cols)
         # Every part of a cell must be explained by the plane model: pixels the flow could not match (occlusion
         # by something tall, a parallax too large for the pair) are not "no evidence" but unexplained, so a
         # cell with more than a few of them is not measured in this frame, and one with mostly unexplained
@@ -155,13 +168,8 @@ class GeometryGrid:
         measured = (n_rel > 0) & (n_unrel <= self.max_unexplained_share * total)
         suspect = (n_unrel > 0.5 * total).reshape(rows, cols)
         det_c = np.where(measured, worst, np.inf).astype(np.float32).reshape(rows, cols)
-        det_c = _fill_holes(det_c, (total == 0).reshape(rows, cols))
-        # A pixel covers up to a few cells on the ground at range, and flow smears an obstacle's edge into the
-        # ground around it (its top is placed at a height read low): grow what stood out by ``grow_m``.
-        k = 2 * max(1, int(math.ceil(self.grow_m / self.cell_m))) + 1
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-        high = cv2.dilate(high.view(np.uint8), kernel).astype(bool)
-        suspect = cv2.dilate(suspect.view(np.uint8), kernel).astype(bool)
+        det_c = _fill_holes(det_c, (np.bincount(idx, minlength=n) == 0).reshape(rows, cols))  # no pixel at all
+        suspect = cv2.dilate(suspect.view(np.uint8), self._grow).astype(bool)
         return r0, c0, det_c, high, suspect
 
     def view(self, north0_m: float, east0_m: float, shape: tuple[int, int], now_s: float) -> GeometryView:
@@ -182,6 +190,7 @@ class GeometryGrid:
         seen = take(self._w[0], np.float32(0.0)) * decay
         high_w = take(self._w[1], np.float32(0.0)) * decay
         obstacle = (high_w > 0) & (high_w >= self.obstacle_vote_share * seen)
+        obstacle = cv2.dilate(obstacle.view(np.uint8), self._grow).astype(bool)
         age = now_s - take(self._clear_t, -np.inf)
         clear = (age <= self.memory_s) & ~obstacle
         det = take(self._det, np.float32(np.inf))
