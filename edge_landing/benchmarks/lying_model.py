@@ -121,13 +121,12 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
         state = VehicleState(s.t_s, s.attitude, s.position_ned_m.copy(), s.agl_m, "sim")
         for name, run in runs.items():
             pred = lying_prediction(intr, mount, state, k) if run["model"] is None else run["model"](r.rgb, state, k)
-            for kind in ("geometry", "sent", "network"):
+            fused = run["geometry"].fuse(pred, state, s.t_s, r.rgb)
+            sent, _ = run["continuity"].step(fused.target, state, fused.grid, True)
+            outcomes = {"geometry": fused.target, "sent": sent,
+                        "network": run["network"].update(pred, state, s.t_s, None)}
+            for kind, target in outcomes.items():
                 fuser = run["geometry" if kind == "sent" else kind]
-                if kind == "sent":
-                    target, _ = run["continuity"].step(target, state, fused.grid, True)
-                else:
-                    fused = fuser.fuse(pred, state, s.t_s, r.rgb if kind == "geometry" else None)
-                    target = fused.target
                 if kind == "geometry" and "geometry" in target.timings_s:
                     geo_ms.append(1e3 * target.timings_s["geometry"])
                 if target.valid and target.position_ned_m is not None:

@@ -23,8 +23,8 @@ height spread alone and the confidence is multiplied by ``depth_only_confidence`
 the target's ``reason``).
 
 The network may propose, only geometry may confirm (ARCHITECTURE.md §11): with the camera image, the
-vehicle position and its height above ground, the motion stage (fusion.motion) measures heights above the
-ground from frame pairs and keeps per-cell evidence in NED (fusion.motion_grid). A spot is sent only when
+vehicle position and its height above ground, fusion.confirm runs the motion stage (fusion.motion) and
+keeps per-cell evidence in NED (fusion.motion_grid). Settings: fusion.config. A spot is sent only when
 its clear disc is landable by the network *and* geometry-clear (measured to ``obstacle_height_m`` within
 ``geometry_memory_s``, nothing seen standing out). Before that the network's spot is tracked
 (``Target.tracked_ned_m``) but the target is not valid, and says why; ``allow_unconfirmed`` sends it anyway
@@ -35,114 +35,25 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Optional
 
 import cv2
 import numpy as np
 
-from edge_landing.runtime.core.camera import (
-    Attitude,
-    Intrinsics,
-    Mount,
-    ned_from_camera,
-)
-from edge_landing.runtime.core.errors import InputError
-from edge_landing.runtime.core.messages import (
-    EVIDENCE_GEOMETRY,
-    EVIDENCE_NETWORK_ONLY,
-    Prediction,
-    Target,
-    VehicleState,
-)
-from edge_landing.runtime.fusion.grid import (
-    CellRules,
-    GridView,
-    TopDownGrid,
-    clearance_from_mask,
-    splat_samples,
-)
+from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount, ned_from_camera
+from edge_landing.runtime.core.messages import EVIDENCE_NETWORK_ONLY, Prediction, Target, VehicleState
+from edge_landing.runtime.fusion.config import FusionConfig
+from edge_landing.runtime.fusion.confirm import GeometryConfirmation
+from edge_landing.runtime.fusion.grid import CellRules, GridView, TopDownGrid, splat_samples
 from edge_landing.runtime.fusion.landing import Choice, KeptSpot, choose_spot
-from edge_landing.runtime.fusion.motion import CameraPose, MotionConfig, MotionStage
-from edge_landing.runtime.fusion.motion_grid import GeometryGrid, GeometryView
+from edge_landing.runtime.fusion.motion_grid import GeometryView
 from edge_landing.runtime.fusion.result import FusionResult
+
+__all__ = ["DEGRADED_NO_HVO", "FusionConfig", "LandingFuser"]
 
 log = logging.getLogger(__name__)
 DEGRADED_NO_HVO = "degraded: depth only (no HVO head), confidence lowered"
-
-
-@dataclass(frozen=True)
-class FusionConfig:
-    """Fusion settings. Lengths in metres, angles in radians, times in seconds."""
-
-    working_hw: tuple[int, int] = (120, 160)                # (height, width) depth and HVO are resized to
-    cell_m: float = 0.5                           # grid cell size
-    grid_radius_m: float = 50.0                   # half-width of the square grid around the vehicle
-    vehicle_radius_m: float = 1.0
-    margin_m: float = 1.0                         # a candidate needs clearance >= radius + margin
-    min_points_per_cell: float = 1.0              # support: (decayed) footprint samples per cell
-    max_height_spread_m: float = 0.1              # std of heights in a cell
-    # Flat by depth, per pixel. 15°, not the labels' 10°: per-pixel normals of a network's depth scatter (the
-    # suburban+urban EdgeNet's median slope on truly level ground is ~20° before cell voting); the cell height
-    # spread, P(horizontal) and the vote still decide. With 10° the default sim flight got 9/200 targets, with
-    # 15° 165/200, all on ground-truth level ground with the clearance (benchmarks/landing_truth.py).
-    max_slope_rad: float = math.radians(15.0)
-    min_horizontal_share: float = 0.6             # mean P(horizontal) in a cell
-    min_flat_share: float = 0.9                   # share of samples flat by depth in a cell
-    min_vote_share: float = 0.6                   # NED: decayed share of frames that judged a cell landable
-    clearance_saturation_m: float = 4.0           # more clearance than this earns no more score
-    travel_penalty_per_m: float = 0.03            # score (metres of clearance) lost per metre of travel
-    hysteresis_m: float = 1.0                     # a new spot must beat the kept one by this score
-    decay_s: float = 2.0                          # e-folding time of grid evidence (NED mode)
-    memory_s: float = 3.0                         # NED: a cell not observed for this long is unobserved again
-    stale_after_s: float = 0.5                    # frames older than this (vs now_s) give no target
-    keep_target_s: float = 2.0                    # forget the kept target after this long without one
-    splat_spacing_m: float = 0.5                  # sample spacing inside a pixel's footprint
-    max_footprint_m: float = 4.0                  # larger pixel steps are depth discontinuities
-    max_samples_per_axis: int = 4
-    min_neighbours_to_fill: int = 6               # an empty cell with this many observed of 8 is filled (9: off)
-    depth_smoothing_px: int = 3                   # box filter on depth before normals (1: off) ...
-    smoothing_max_step: float = 0.05              # ... except across steps > this share of the depth
-    min_valid_depth_share: float = 0.05           # less valid depth than this: no target
-    depth_only_confidence: float = 0.5            # confidence factor without HVO
-    obstacle_height_m: float = 0.5                # geometry must be able to see obstacles this tall to confirm
-    geometry_memory_s: float = 30.0               # how long a geometry confirmation holds (hover, descent)
-    allow_unconfirmed: bool = False               # send network-only spots when geometry cannot confirm
-    motion: MotionConfig = MotionConfig()
-
-    def __post_init__(self) -> None:
-        h, w = self.working_hw
-        if h < 8 or w < 8:
-            raise InputError(f"fusion working size must be at least 8x8 pixels, got {h}x{w}")
-        positive = {"cell_m": self.cell_m, "grid_radius_m": self.grid_radius_m,
-                    "splat_spacing_m": self.splat_spacing_m, "decay_s": self.decay_s,
-                    "stale_after_s": self.stale_after_s, "memory_s": self.memory_s, "max_footprint_m": self.max_footprint_m,
-                    "clearance_saturation_m": self.clearance_saturation_m,
-                    "max_samples_per_axis": self.max_samples_per_axis}
-        for name, value in positive.items():
-            if not value > 0:
-                raise InputError(f"fusion {name} must be > 0, got {value}")
-        if self.grid_radius_m < 2 * self.required_clearance_m:
-            raise InputError(f"fusion grid_radius_m={self.grid_radius_m} is too small for a clearance of "
-                             f"{self.required_clearance_m} m (expected at least twice that)")
-        if self.vehicle_radius_m < 0 or self.margin_m < 0 or self.travel_penalty_per_m < 0 or self.hysteresis_m < 0:
-            raise InputError("fusion vehicle_radius_m, margin_m, travel_penalty_per_m and hysteresis_m must be >= 0")
-        if self.depth_smoothing_px < 1 or self.depth_smoothing_px % 2 == 0:
-            # an even box has no centre pixel: it would shift the depth by half a pixel
-            raise InputError(f"fusion depth_smoothing_px must be odd and >= 1, got {self.depth_smoothing_px}")
-        if not 1 <= self.min_neighbours_to_fill <= 9:
-            raise InputError(f"fusion min_neighbours_to_fill must be in 1..9, got {self.min_neighbours_to_fill}")
-        if not 0 < self.min_vote_share <= 1:
-            raise InputError(f"fusion min_vote_share must be in (0, 1], got {self.min_vote_share}")
-        if not 0 < self.max_slope_rad < math.pi / 2:
-            raise InputError(f"fusion max_slope_rad must be in (0, pi/2), got {self.max_slope_rad}")
-        if not self.obstacle_height_m > 0 or not self.geometry_memory_s > 0:
-            raise InputError(f"fusion obstacle_height_m and geometry_memory_s must be > 0, got "
-                             f"{self.obstacle_height_m} and {self.geometry_memory_s}")
-
-    @property
-    def required_clearance_m(self) -> float:
-        return self.vehicle_radius_m + self.margin_m
 
 
 def _resize(a: np.ndarray, hw: tuple[int, int], interpolation: int) -> np.ndarray:
@@ -192,11 +103,8 @@ class LandingFuser:
         self._last_time_s: Optional[float] = None
         self._kept: Optional[KeptSpot] = None
         self._tracked: Optional[KeptSpot] = None
-        self.motion = MotionStage(config.motion, intrinsics, mount)
-        self._geo_grid = GeometryGrid(config.cell_m, config.grid_radius_m, config.geometry_memory_s,
-                                      config.obstacle_height_m, config.motion.detect_sigmas)
-        self._geo: Optional[GeometryView] = None
-        self._geo_note = ""
+        self._confirm = GeometryConfirmation(config, intrinsics, mount)
+        self.motion = self._confirm.motion
 
     @property
     def grid(self) -> Optional[GridView]:
@@ -206,14 +114,12 @@ class LandingFuser:
     @property
     def geometry(self) -> Optional[GeometryView]:
         """Motion-geometry evidence on the last frame's grid (clear / obstacle cells), or None."""
-        return self._geo
+        return self._confirm.view
 
     def reset(self) -> None:
         self._grid.clear()
-        self._geo_grid.clear()
-        self.motion.reset()
+        self._confirm.reset()
         self._view, self._mode, self._last_time_s, self._kept, self._tracked = None, None, None, None, None
-        self._geo = None
 
     def fuse(self, pred: Prediction, state: VehicleState | None = None, now_s: float | None = None,
              image: Optional[np.ndarray] = None) -> FusionResult:
@@ -221,7 +127,7 @@ class LandingFuser:
         before = self._view
         target = self.update(pred, state, now_s, image)
         reached = self._view is not before
-        return FusionResult(target, self._view if reached else None, self._geo if reached else None)
+        return FusionResult(target, self._view if reached else None, self._confirm.view if reached else None)
 
     def update(self, pred: Prediction, state: VehicleState | None = None, now_s: float | None = None,
                image: Optional[np.ndarray] = None) -> Target:
@@ -314,21 +220,21 @@ class LandingFuser:
         proposal = choose_spot(self._view, here, cfg, self._tracked)
         focus = None if proposal is None else np.array([proposal.north_m, proposal.east_m, proposal.down_m])
         t_geo = time.perf_counter()
-        self._geo = self._geometry(image, state, position, t_cap, focus)
+        geo = self._confirm.run(self._view, image, state, position, t_cap, focus)
         timings["geometry"] = time.perf_counter() - t_geo
         if proposal is None:
             self._kept = self._tracked = None
             best = float(self._view.clearance_m.max())
             return none(f"no safe spot: best clearance {best:.2f} m < required {cfg.required_clearance_m:.2f} m")
         self._tracked = KeptSpot(proposal.north_m, proposal.east_m, t_cap)
-        if self._geo is not None:
-            confirmed_view = self._confirmed_view(self._view, self._geo)
+        if geo is not None:
+            confirmed_view = self._confirm.confirmed_view(self._view)
             choice = choose_spot(confirmed_view, here, cfg, self._kept)
             if choice is not None:
                 return self._make_target(pred, choice, attitude, r_nc, position, hvo_h is not None, timings,
-                                         self._evidence(choice))
+                                         self._confirm.evidence())
         self._kept = None
-        why = self._unconfirmed_reason(proposal, position)
+        why = self._confirm.unconfirmed_reason(proposal, self._view, position)
         if cfg.allow_unconfirmed:
             target = self._make_target(pred, proposal, attitude, r_nc, position, hvo_h is not None, timings,
                                        f"{EVIDENCE_NETWORK_ONLY} ({why})")
@@ -337,57 +243,6 @@ class LandingFuser:
         target = none(why)
         point = np.array([proposal.north_m, proposal.east_m, proposal.down_m])
         return replace(target, tracked_ned_m=point if position is not None else None, evidence=EVIDENCE_NETWORK_ONLY)
-
-    # -- geometry ---------------------------------------------------------------------------------------
-
-    def _geometry(self, image: Optional[np.ndarray], state: Optional[VehicleState], position: Optional[np.ndarray],
-                  t_cap: float, focus: Optional[np.ndarray]) -> Optional[GeometryView]:
-        """Run the motion stage on this frame (its window centred on the network's candidate ``focus``, NED)
-        and return the evidence aligned with the fusion grid (or None)."""
-        view = self._view
-        if view is None or position is None:
-            self._geo_note = "no vehicle position (geometry needs telemetry poses)"
-            return None
-        self._geo_grid.centre_on(float(position[0]), float(position[1]))
-        agl = None if state is None else state.agl_m
-        if image is None or agl is None or not math.isfinite(float(agl)):
-            self._geo_note = "no camera image for geometry" if image is None else "no height above ground"
-        else:
-            pose = CameraPose.of(self.mount, state.attitude if state else Attitude(), position, float(agl))
-            result = self.motion.update(np.asarray(image), pose, t_cap, focus)
-            if result is not None:
-                self._geo_grid.add(result)
-                self._geo_note = ""
-            else:
-                self._geo_note = f"no new geometry ({self.motion.last_reason})"
-        return self._geo_grid.view(view.north0_m, view.east0_m, (int(view.shape[0]), int(view.shape[1])), t_cap)
-
-    def _confirmed_view(self, view: GridView, geo: GeometryView) -> GridView:
-        landable = view.landable & geo.clear
-        return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
-
-    def _evidence(self, choice: Choice) -> str:
-        return EVIDENCE_GEOMETRY if not self._geo_note else f"{EVIDENCE_GEOMETRY}; {self._geo_note}"
-
-    def _unconfirmed_reason(self, proposal: Choice, position: Optional[np.ndarray]) -> str:
-        """Why the network's spot is not sent: what geometry knows about its cell."""
-        cfg = self.config
-        geo, view = self._geo, self._view
-        if geo is None or view is None or position is None:
-            return f"unconfirmed: {self._geo_note}"
-        cell = view.cell_of(proposal.north_m, proposal.east_m)
-        if cell is None:
-            return "unconfirmed: spot outside the geometry grid"
-        if geo.obstacle[cell]:
-            return f"unconfirmed: geometry sees an obstacle >= {cfg.obstacle_height_m:.1f} m at the network's spot"
-        det = float(geo.detectable_m[cell])
-        note = f" ({self._geo_note})" if self._geo_note else ""
-        if not math.isfinite(det):
-            return f"unconfirmed: geometry has not measured the spot yet{note}"
-        if det > cfg.obstacle_height_m:
-            return (f"unconfirmed: geometry detects {det:.2f} m > {cfg.obstacle_height_m:.2f} m there "
-                    f"(baseline too short for the range){note}")
-        return f"unconfirmed: geometry not clear around the spot (clearance){note}"
 
     def _prepare_grid(self, position: Optional[np.ndarray], t_cap: float) -> None:
         """Fresh grid in vehicle mode; in NED mode decay by elapsed time and move with the vehicle."""
@@ -464,7 +319,7 @@ class LandingFuser:
         confidence = (clear_used / cfg.clearance_saturation_m) * choice.flat_share
         confidence *= choice.horizontal_share if have_hvo else cfg.depth_only_confidence
         values = [*body, *cam, rng, size_x, size_y, choice.clearance_m, confidence]
-        base, det, age = self._geometry_figures(choice)
+        base, det, age = self._confirm.figures(choice, self._view)
         if not all(math.isfinite(float(v)) for v in values) or rng <= 0:
             self._kept = None
             return Target.none(pred.frame_id, pred.capture_time_s, "no target: non-finite output", timings)
@@ -478,11 +333,3 @@ class LandingFuser:
             size_x_rad=size_x, size_y_rad=size_y, clearance_m=float(choice.clearance_m),
             confidence=float(min(max(confidence, 0.0), 1.0)), timings_s=timings, evidence=evidence,
             geometry_baseline_m=base, geometry_detectable_m=det, geometry_age_s=age)
-
-    def _geometry_figures(self, choice: Choice) -> tuple[float, float, float]:
-        """(baseline, detectable height, age of confirmation) of the spot's geometry cell (NaN without)."""
-        geo, view = self._geo, self._view
-        cell = None if geo is None or view is None else view.cell_of(choice.north_m, choice.east_m)
-        if cell is None or geo is None:
-            return math.nan, math.nan, math.nan
-        return float(geo.baseline_m[cell]), float(geo.detectable_m[cell]), float(geo.clear_age_s[cell])

@@ -4,18 +4,7 @@ Between the current frame (c) and an earlier one (r) with known poses, points of
 plane-induced homography; a point ``h`` above the plane is displaced from that prediction along the
 epipolar direction. Frames: camera = OpenCV (x right, y down, z forward), world = local NED.
 
-Derivation (normalised image coordinates, camera c = "1", camera r = "2"):
-  X_r = R X_c + t with R = R_r^T R_c, t = R_r^T (p_c - p_r) (R_x: NED <- camera, p_x: camera position).
-  Ground plane in camera c: n^T X = d, n = R_c^T (0, 0, 1) (world down in camera c), d = height above it.
-  A point at height h above the plane: n^T X_c = d - h. With H_e = R + t n^T / d:
-      X_r = H_e X_c + t h / d.
-  Writing X_c = λ x_c (x_c = (x, y, 1), λ = (d - h) / n^T x_c) and Z0 = the reference-frame depth of the
-  *plane* point on the same ray (h = 0), the projections differ exactly by
-      x_r - π(H_e x_c) = h / (d - h) · (t_xy - x_r t_z) / Z0 = s · g,
-  so s = r·g / |g|² and h = d s / (1 + s). ``g`` is the parallax a point would show per unit of h/(d-h):
-  |g| ≈ |t⊥| / Z0, the baseline across the line of sight over the range. With flow noise σ pixels
-  (σ_n = σ / f normalised), h has σ_h ≈ d σ_n / |g| near the ground, and the smallest height this pair
-  could have detected is ``detect_sigmas`` · σ_h.
+The plane-plus-parallax algebra (derivation, terrain fit) is in fusion.parallax.
 
 Flow: the reference image is first warped by the plane homography into the current view, so the flow
 DIS has to find is only the residual parallax (small for the ground even with tens of metres of
@@ -33,9 +22,13 @@ from typing import Deque, Optional
 import cv2
 import numpy as np
 
-from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount, ned_from_camera
+from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.fusion.parallax import CameraPose, fit_ground, ground_surface, parallax_height, plane_homography
+
+__all__ = ["CameraPose", "DisPreset", "MotionConfig", "MotionStage", "ParallaxResult", "parallax_height",
+           "plane_homography"]
 
 
 class DisPreset(ChoiceEnum):
@@ -102,20 +95,6 @@ class MotionConfig:
 
 
 @dataclass(frozen=True)
-class CameraPose:
-    """Camera pose at capture: NED <- camera rotation, camera position (NED, m), height above the ground (m)."""
-
-    r_nc: np.ndarray
-    position_ned_m: np.ndarray
-    agl_m: float
-
-    @staticmethod
-    def of(mount: Mount, attitude: Attitude, position_ned_m: np.ndarray, agl_m: float) -> CameraPose:
-        return CameraPose(ned_from_camera(mount, attitude), np.asarray(position_ned_m, np.float64).reshape(3),
-                          float(agl_m))
-
-
-@dataclass(frozen=True)
 class _Stored:
     time_s: float
     grey: np.ndarray
@@ -147,45 +126,6 @@ class ParallaxResult:
     # across-epipolar mismatch: occlusion by something tall, a parallax beyond the flow's reach). Pixels
     # outside the reference frame or beyond max_range_m are neither measured nor unexplained: no evidence.
     unexplained: Optional[np.ndarray] = None
-
-
-def plane_homography(k: np.ndarray, cur: CameraPose, ref: CameraPose) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                               np.ndarray, float]:
-    """(H pixel c -> r, R, t, n, d): the ground plane's homography between current and reference frames.
-
-    ``k`` is the 3×3 intrinsic matrix in OpenCV's pixel-centre convention. The plane is horizontal at
-    the current frame's height above ground below the current camera.
-    """
-    rot = ref.r_nc.T @ cur.r_nc
-    t = ref.r_nc.T @ (cur.position_ned_m - ref.position_ned_m)
-    n = cur.r_nc.T @ np.array([0.0, 0.0, 1.0])
-    d = cur.agl_m
-    h_norm = rot + np.outer(t, n) / d
-    return k @ h_norm @ np.linalg.inv(k), rot, t, n, d
-
-
-def parallax_height(x_c: np.ndarray, x_r: np.ndarray, rot: np.ndarray, t: np.ndarray, n: np.ndarray, d: float
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Heights above the plane from matched normalised points (2×N each): (h, |g|, cross-epipolar residual).
-
-    ``x_r`` is where the current frame's point ``x_c`` was found in the reference frame. See the module
-    docstring for the derivation: r = x_r - π(H_e x_c) = s·g, h = d·s/(1+s).
-    """
-    xh = np.vstack([x_c, np.ones((1, x_c.shape[1]), x_c.dtype)])
-    nx = n @ xh                                               # > 0: the ray meets the plane ahead
-    q = (rot + np.outer(t, n) / d) @ xh                       # H_e x_c (homogeneous, reference frame)
-    pred = q[:2] / q[2]
-    z0 = d / nx * q[2]                                        # reference depth of the plane point on this ray
-    g = (t[:2, None] - x_r * t[2]) / z0
-    g2 = np.einsum("ij,ij->j", g, g)
-    r = x_r - pred
-    with np.errstate(invalid="ignore", divide="ignore"):
-        s = np.einsum("ij,ij->j", r, g) / g2
-        cross = np.abs(r[0] * g[1] - r[1] * g[0]) / np.sqrt(g2)
-        h = d * s / (1.0 + s)
-    bad = ~(nx > 0) | ~(z0 > 0) | ~(g2 > 0)
-    h[bad] = np.nan
-    return h, np.sqrt(np.where(bad, 0.0, g2)), cross
 
 
 class MotionStage:
@@ -229,7 +169,7 @@ class MotionStage:
         self._ground = None
 
     def _plane_pose(self, pose: CameraPose, time_s: float) -> CameraPose:
-        """The pose with the plane at the ground last measured near the spot, when recent.
+        """The pose with the plane at the ground last measured near the spot, when recent and lower.
 
         A rangefinder reads the first surface below the vehicle (a roof when flying over a house): a plane
         there, tens of metres above the ground the camera looks at, leaves the ground with a parallax the
@@ -239,7 +179,9 @@ class MotionStage:
         if self._ground is None or not 0.0 <= time_s - self._ground[0] <= self.config.history_s:
             return pose
         d = self._ground[1] - float(pose.position_ned_m[2])
-        if not d >= self.config.min_agl_m:
+        # Only lower than the rangefinder's surface: a window centred on a roof fits the roof as its "local
+        # ground", which must not lift the plane for the street views that follow.
+        if not d > pose.agl_m:
             return pose
         return CameraPose(pose.r_nc, pose.position_ned_m, d)
 
@@ -416,8 +358,8 @@ class MotionStage:
         reliable = near & explained
         with np.errstate(divide="ignore", invalid="ignore"):
             sigma_plane = d * (noise_px / f) / gnorm
-        fit = _fit_ground(ned, hgt, sigma_plane, reliable & (sigma_plane <= cfg.max_sigma_h_m), pose.position_ned_m)
-        ground = _ground_surface(fit, ned, pose.position_ned_m)
+        fit = fit_ground(ned, hgt, sigma_plane, reliable & (sigma_plane <= cfg.max_sigma_h_m), pose.position_ned_m)
+        ground = ground_surface(fit, ned, pose.position_ned_m)
         local = hgt - ground
         # dh/ds = (d - h)^2 / d: the plane's sensitivity holds only at the plane; ground below it (a rangefinder
         # reading a roof, a slope) is measured with the error of its own, larger, range.
@@ -459,45 +401,3 @@ class MotionStage:
         for i in range(3):
             pts[i] = (r[i, 0] * xc[0] + r[i, 1] * xc[1] + r[i, 2]) * lam + pose.position_ned_m[i]
         return pts, nx
-
-
-def _design(dn: np.ndarray, de: np.ndarray) -> np.ndarray:
-    return np.stack([np.ones_like(dn), dn, de, dn * dn, dn * de, de * de], axis=-1)
-
-
-def _fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndarray, here: np.ndarray,
-                max_points: int = 3000) -> np.ndarray:
-    """Robust quadratic surface through the ground's heights (coefficients in 100 m units).
-
-    Starts from the 10th percentile (obstacles sit above the ground; some ground shows between them) and
-    trims to shrinking windows that reach less far up than down, so obstacles do not lift the surface.
-    """
-    coef = np.zeros(6)
-    idx = np.flatnonzero(use.reshape(-1))
-    if idx.size < 30:
-        return coef
-    if idx.size > max_points:
-        idx = idx[:: idx.size // max_points + 1]
-    h = hgt.reshape(-1)[idx]
-    dn = (ned[0].reshape(-1)[idx] - here[0]) / 100.0
-    de = (ned[1].reshape(-1)[idx] - here[1]) / 100.0
-    a = _design(dn, de)
-    coef[0] = float(np.percentile(h, 10))
-    for window in (3.0, 1.5, 0.6):
-        res = h - a @ coef
-        # Asymmetric: what stands out above the surface is left out sooner than what lies below it, so a
-        # field packed with cars of one height does not become a raised "ground" at their roofs.
-        inl = (res >= -window) & (res <= 0.3 * window)
-        if inl.sum() < 30:
-            break
-        sol, *_ = np.linalg.lstsq(a[inl], h[inl], rcond=None)
-        coef = sol
-    return coef
-
-
-def _ground_surface(coef: np.ndarray, ned: np.ndarray, here: np.ndarray) -> np.ndarray:
-    dn = (ned[0] - here[0]) / 100.0
-    de = (ned[1] - here[1]) / 100.0
-    out: np.ndarray = coef[0] + coef[1] * dn + coef[2] * de + coef[3] * dn * dn + coef[4] * dn * de \
-        + coef[5] * de * de
-    return out
