@@ -157,6 +157,7 @@ class MotionStage:
         self.last: Optional[ParallaxResult] = None
         self.last_reason = ""
         self._ground: Optional[tuple[float, float]] = None   # (time, NED down of the local ground last measured)
+        self._scan = 0                                         # next window position without a candidate spot
 
     @property
     def ground_down_m(self) -> Optional[float]:
@@ -255,7 +256,13 @@ class MotionStage:
             return None
         row0 = max(0, int(rows[0]) - 8)                      # DIS patches need a little context
         wh, ww = min(self.config.window_hw[0], h - row0), min(self.config.window_hw[1], w)
-        cu, cv = 0.5 * w, h - 0.5 * wh
+        # No candidate spot: scan the ground band, one window position per frame pair (3 columns × 2 rows), so
+        # that the evidence (kept for tens of seconds) covers where a spot may be proposed later, instead of
+        # always the same patch below the vehicle.
+        k = self._scan
+        self._scan = (k + 1) % 6
+        cu = (0.5 + (k % 3 - 1) * 0.34) * w
+        cv = h - 0.5 * wh if k < 3 else row0 + 0.5 * wh
         if focus is not None:
             cam = pose.r_nc.T @ (np.asarray(focus, np.float64) - pose.position_ned_m)
             if cam[2] > 0:
