@@ -11,6 +11,9 @@ from memory on frames without a fresh confirmation). Every sent target is judged
 against the world (benchmarks/landing_truth.check_target). Also: motion geometry alone, per cell, against
 the world's heights (recall of obstacles >= 1 m among cells it measured to <= 1 m, at 30-60 m AGL).
 
+``--no-position`` replays telemetry with attitude and height above ground but no position: geometry then runs
+on the image-only pose (fusion.image_motion); targets are judged where they point from the true pose.
+
     python -m edge_landing.benchmarks.lying_model --style urban --seed 41 --frames 200 --models lying shipped
 """
 from __future__ import annotations
@@ -43,6 +46,7 @@ class ReplayConfig:
     width: int = 320                  # camera size: the networks see it resized, motion geometry crops it
     height: int = 240
     trace: str = ""                   # JSON lines, one per frame and model: why a target was (not) sent
+    no_position: bool = False         # telemetry without position: geometry from the image-only pose
 
 
 def lying_prediction(intr: Intrinsics, mount: Mount, state: VehicleState, frame_id: int) -> Prediction:
@@ -71,8 +75,8 @@ class _Shipped:
         return self.scale.apply(self.model.predict(rgb, frame_id, state.time_s), state)
 
 
-def cell_recall(world: Any, fuser: LandingFuser, agl_m: float, min_height_m: float = 1.0, open_radius_m: float = 1.5
-                ) -> Optional[tuple[int, int, int, int, int, int]]:
+def cell_recall(world: Any, fuser: LandingFuser, agl_m: float, min_height_m: float = 1.0, open_radius_m: float = 1.5,
+                origin_ne_m: tuple[float, float] = (0.0, 0.0)) -> Optional[tuple[int, int, int, int, int, int]]:
     """Geometry alone, per cell, at 30-60 m AGL: among the cells of the fusion grid it measured to
     ``min_height_m`` or better within its memory (detectable height <= 1 m): (obstacle cells (world height >=
     1 m at the cell centre), of them marked obstacle, flat cells (< 0.05 m), of them marked, open flat cells
@@ -84,8 +88,8 @@ def cell_recall(world: Any, fuser: LandingFuser, agl_m: float, min_height_m: flo
     if not measured.any():
         return (0, 0, 0, 0, 0, 0)
     rows, cols = np.nonzero(measured)
-    north = view.north0_m + (rows + 0.5) * view.cell_m
-    east = view.east0_m + (cols + 0.5) * view.cell_m
+    north = origin_ne_m[0] + view.north0_m + (rows + 0.5) * view.cell_m   # origin: the vehicle, without position
+    east = origin_ne_m[1] + view.east0_m + (cols + 0.5) * view.cell_m
 
     def height(n: np.ndarray, e: np.ndarray) -> np.ndarray:
         out: np.ndarray = world.terrain.z_at(n, e) - world.surface_z(n, e)
@@ -132,13 +136,17 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
     for k, s in enumerate(vehicle_samples(scfg, world)):
         r = render_sample(scfg, k, s, renderer)
         state = VehicleState(s.t_s, s.attitude, s.position_ned_m.copy(), s.agl_m, "sim")
+        seen = replace(state, position_ned_m=None) if cfg.no_position else state
         for name, run in runs.items():
             pred = lying_prediction(intr, mount, state, k) if run["model"] is None else run["model"](r.rgb, state, k)
-            fused = run["geometry"].fuse(pred, state, s.t_s, r.rgb)
-            sent, _ = run["continuity"].step(fused.target, state, fused.grid, True)
+            fused = run["geometry"].fuse(pred, seen, s.t_s, r.rgb)
+            sent, _ = run["continuity"].step(fused.target, seen, fused.grid, True)
             outcomes = {"geometry": fused.target, "sent": sent,
-                        "network": run["network"].update(pred, state, s.t_s, None)}
+                        "network": run["network"].update(pred, seen, s.t_s, None)}
             for kind, target in outcomes.items():
+                if cfg.no_position and target.valid and target.position_body_frd_m is not None:
+                    body = np.asarray(target.position_body_frd_m, np.float64)   # judged where it points
+                    target = replace(target, position_ned_m=s.position_ned_m + s.attitude.ned_from_body() @ body)
                 fuser = run["geometry" if kind == "sent" else kind]
                 if kind == "geometry" and "geometry" in target.timings_s:
                     geo_ms.append(1e3 * target.timings_s["geometry"])
@@ -153,7 +161,8 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
                 if trace is not None and kind == "geometry":
                     trace.write(json.dumps(_trace_row(k, n_app, n_hov, name, s, target, fuser)) + "\n")
             if k % cfg.recall_every == 0:
-                counts = cell_recall(world, run["geometry"], s.agl_m)
+                origin = (float(s.position_ned_m[0]), float(s.position_ned_m[1])) if cfg.no_position else (0.0, 0.0)
+                counts = cell_recall(world, run["geometry"], s.agl_m, origin_ne_m=origin)
                 if counts is not None:
                     recall[name] = [a + b for a, b in zip(recall[name], counts)]
         if progress and k % 20 == 0:
@@ -209,14 +218,16 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--obstacle-height", type=float, default=0.5)
     p.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"), help="camera size")
     p.add_argument("--no-hazards", action="store_true", help="the plain towns (no sim.hazards)")
+    p.add_argument("--no-position", action="store_true", help="telemetry without position (image-only pose)")
     p.add_argument("--json", help="write the result here")
     p.add_argument("--trace", default="", help="write one JSON line per frame and model (reasons, motion figures)")
     a = p.parse_args(argv)
     result = replay(ReplayConfig(a.style, a.seed, a.frames, models=tuple(a.models),
                                  obstacle_height_m=a.obstacle_height, width=a.size[0], height=a.size[1],
-                                 hazards=not a.no_hazards, trace=a.trace),
+                                 hazards=not a.no_hazards, trace=a.trace, no_position=a.no_position),
                     progress=True)
-    print(f"{a.style} seed {a.seed}, {a.frames} frames, camera {a.size[0]}x{a.size[1]}")
+    print(f"{a.style} seed {a.seed}, {a.frames} frames, camera {a.size[0]}x{a.size[1]}"
+          + (", telemetry without position" if a.no_position else ""))
     print(_summary(result))
     if a.json:
         Path(a.json).write_text(json.dumps(result, indent=1))

@@ -15,6 +15,8 @@ from edge_landing.runtime.core.camera import Attitude
 # Target.evidence prefixes (ARCHITECTURE.md §11).
 EVIDENCE_GEOMETRY = "geometry+network"
 EVIDENCE_NETWORK_ONLY = "network only"
+# Appended to the evidence when the geometry baseline came from the images, not telemetry positions (§11).
+EVIDENCE_IMAGE_POSE = "baseline from image pose"
 
 
 @dataclass(frozen=True)

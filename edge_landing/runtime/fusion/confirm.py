@@ -5,6 +5,11 @@ position and its height above ground, the motion stage (fusion.motion) measures 
 from frame pairs and the evidence is kept per cell in local NED (fusion.motion_grid), aligned cell for cell
 with fusion's grid. The stage runs at most every ``geometry_interval_s`` (evidence is kept for
 ``geometry_memory_s`` anyway; a pair every 0.2 s loses nothing a landing needs and halves the cost).
+Without a telemetry position (attitude and height above ground only) the stage places frames by the image-only
+pose (fusion.image_motion); the grid then lives in the image odometry's frame, offset onto fusion's
+vehicle-centred grid (the same cells up to half a cell; obstacles are grown by a metre), with a memory of the
+keyframe ring only (the odometry drifts), and evidence says ``baseline from image pose``. A position missing
+for less than the ring's span is chained from the last telemetry position and stays in this grid.
 Pure numpy/OpenCV, no I/O; memory bounded by the grid and the stage's keyframe ring.
 """
 from __future__ import annotations
@@ -16,10 +21,10 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount
-from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, VehicleState
+from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, EVIDENCE_IMAGE_POSE, VehicleState
 from edge_landing.runtime.fusion.grid import GridView, clearance_from_mask
 from edge_landing.runtime.fusion.landing import Choice
-from edge_landing.runtime.fusion.motion import CameraPose, MotionStage
+from edge_landing.runtime.fusion.motion import POSE_IMAGE, POSE_TELEMETRY, CameraPose, MotionStage
 from edge_landing.runtime.fusion.motion_grid import GeometryGrid, GeometryView
 
 if TYPE_CHECKING:
@@ -38,6 +43,8 @@ class GeometryConfirmation:
         self.view: Optional[GeometryView] = None
         self.note = ""
         self._last_run_s: Optional[float] = None
+        self._frame: tuple[str, int] = (POSE_TELEMETRY, 0)   # pose source and odometry epoch of ``grid``
+        self._image_posed = False                             # this frame's pose came from the images
 
     def reset(self) -> None:
         self.grid.clear()
@@ -49,27 +56,55 @@ class GeometryConfirmation:
         """Run the motion stage on this frame (its window centred on the network's candidate ``focus``, NED)
         when due, and return the evidence aligned with the fusion grid ``view`` (or None)."""
         self.view = None
-        if view is None or position is None:
-            self.note = "no vehicle position (geometry needs telemetry poses)"
+        agl = math.nan if state is None or state.agl_m is None else float(state.agl_m)
+        if view is None or (position is None and (image is None or not math.isfinite(agl))):
+            self.note = "no vehicle position and no image pose (needs the camera image and height above ground)"
             return None
-        self.grid.centre_on(float(position[0]), float(position[1]))
-        agl = None if state is None else state.agl_m
+        origin = position if position is not None else self.motion.position_ned_m
         last = self._last_run_s
-        if image is None or agl is None or not math.isfinite(float(agl)):
+        if image is None or not math.isfinite(agl):
             self.note = "no camera image for geometry" if image is None else "no height above ground"
-        elif last is not None and 0.0 <= t_cap - last < self.config.geometry_interval_s - 1e-3:
+        elif position is not None and last is not None and 0.0 <= t_cap - last < self.config.geometry_interval_s - 1e-3:
+            # (Without position it runs every frame: the frame's place in the grid comes from the stage.)
             self.note = f"no new geometry (the stage runs every {self.config.geometry_interval_s:g} s)"
         else:
             self._last_run_s = t_cap
-            pose = CameraPose.of(self.mount, state.attitude if state else Attitude(), position, float(agl))
-            result = self.motion.update(np.asarray(image), pose, t_cap, focus)
-            if result is not None:
-                self.grid.add(result)
-                self.note = ""
-            else:
-                self.note = f"no new geometry ({self.motion.last_reason})"
-        self.view = self.grid.view(view.north0_m, view.east0_m, (int(view.shape[0]), int(view.shape[1])), t_cap)
+            origin = self._update(np.asarray(image), state, position, agl, t_cap, focus)
+        if origin is None:
+            return None
+        self.grid.centre_on(float(origin[0]), float(origin[1]))
+        north0, east0 = view.north0_m, view.east0_m
+        if position is None:           # fusion's grid is around the vehicle, this one in the odometry's frame
+            north0, east0 = north0 + float(origin[0]), east0 + float(origin[1])
+        self.view = self.grid.view(north0, east0, (int(view.shape[0]), int(view.shape[1])), t_cap)
         return self.view
+
+    def _update(self, image: np.ndarray, state: Optional[VehicleState], position: Optional[np.ndarray], agl: float,
+                t_cap: float, focus: Optional[np.ndarray]) -> Optional[np.ndarray]:
+        """One motion-stage update; returns where the frame is in the grid's frame (None: nowhere)."""
+        pos = position
+        if pos is None:
+            last = self.motion.position_ned_m
+            pos = np.full(3, np.nan)                    # the stage estimates it from the images
+            if focus is not None and last is not None:  # the window follows the spot (a frame late is fine)
+                focus = focus + last
+        pose = CameraPose.of(self.mount, state.attitude if state else Attitude(), pos, agl)
+        result = self.motion.update(image, pose, t_cap, focus)
+        anchored = position is not None or self.motion.anchored     # in the telemetry's frame
+        frame = (POSE_TELEMETRY, 0) if anchored else (POSE_IMAGE, self.motion.odometry_epoch)
+        self._image_posed = position is None
+        if frame != self._frame:
+            # Image odometry drifts (about 1 % of the distance flown on the sim flights): its evidence is kept
+            # only as long as the keyframe ring (motion.history_s), instead of geometry_memory_s.
+            cfg = self.config
+            memory = cfg.geometry_memory_s if anchored else min(cfg.geometry_memory_s, cfg.motion.history_s)
+            self.grid = GeometryGrid(cfg.cell_m, cfg.grid_radius_m, memory, cfg.obstacle_height_m,
+                                     cfg.motion.detect_sigmas)
+            self._frame = frame
+        self.note = "" if result is not None else f"no new geometry ({self.motion.last_reason})"
+        if result is not None:
+            self.grid.add(result)
+        return position if position is not None else self.motion.position_ned_m
 
     def confirmed_view(self, view: GridView) -> GridView:
         """``view`` with only the cells that are network-landable and geometry-clear (clearance recomputed)."""
@@ -77,12 +112,17 @@ class GeometryConfirmation:
         return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
 
     def evidence(self) -> str:
-        return EVIDENCE_GEOMETRY if not self.note else f"{EVIDENCE_GEOMETRY}; {self.note}"
+        out = EVIDENCE_GEOMETRY
+        if self._image_posed:
+            est = self.motion.image_pose
+            sigma = f" ±{est.sigma_m:.2f} m" if est is not None and est.ok else ""
+            out = f"{out}; {EVIDENCE_IMAGE_POSE}{sigma}"
+        return out if not self.note else f"{out}; {self.note}"
 
     def unconfirmed_reason(self, proposal: Choice, view: Optional[GridView], position: Optional[np.ndarray]) -> str:
         """Why the network's spot is not sent: what geometry knows about its cell, and the best confirmed disc."""
         cfg, geo = self.config, self.view
-        if geo is None or view is None or position is None:
+        if geo is None or view is None:
             return f"unconfirmed: {self.note}"
         cell = view.cell_of(proposal.north_m, proposal.east_m)
         if cell is None:

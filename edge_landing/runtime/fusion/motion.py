@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Deque, Optional
 
 import cv2
@@ -25,7 +25,15 @@ import numpy as np
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.fusion.image_motion import (
+    ImagePose,
+    ImagePoseConfig,
+    estimate_translation,
+    plane_prediction_sigma,
+)
 from edge_landing.runtime.fusion.parallax import CameraPose, fit_ground, ground_surface, parallax_height, plane_homography
+
+POSE_TELEMETRY, POSE_IMAGE = "telemetry", "image"
 
 __all__ = ["CameraPose", "DisPreset", "MotionConfig", "MotionStage", "ParallaxResult", "parallax_height",
            "plane_homography"]
@@ -78,6 +86,8 @@ class MotionConfig:
     max_sigma_h_m: float = 1.0           # pixels noisier than this are left out of the terrain fit
     min_agl_m: float = 2.0               # below this the plane model is not used
     max_plane_noise_px: float = 0.6      # a pair noisier than this does not update the ground plane's level
+    image_pose: ImagePoseConfig = ImagePoseConfig()   # the fallback when telemetry has no position
+
     def __post_init__(self) -> None:
         h, w = self.window_hw
         if h < 32 or w < 32 or self.max_width_px < 32:
@@ -99,6 +109,7 @@ class _Stored:
     time_s: float
     grey: np.ndarray
     pose: CameraPose
+    source: str = POSE_TELEMETRY
 
 
 @dataclass(frozen=True)
@@ -126,6 +137,8 @@ class ParallaxResult:
     # across-epipolar mismatch: occlusion by something tall, a parallax beyond the flow's reach). Pixels
     # outside the reference frame or beyond max_range_m are neither measured nor unexplained: no evidence.
     unexplained: Optional[np.ndarray] = None
+    pose_source: str = POSE_TELEMETRY    # where the baseline came from: telemetry positions or the images
+    pose_sigma_m: float = 0.0            # 1-σ error of the image pose's worst direction (0: telemetry)
 
 
 class MotionStage:
@@ -158,6 +171,12 @@ class MotionStage:
         self.last_reason = ""
         self._ground: Optional[tuple[float, float]] = None   # (time, NED down of the local ground last measured)
         self._scan = 0                                         # next window position without a candidate spot
+        self.image_pose: Optional[ImagePose] = None     # the last image-only estimate (None: telemetry pose)
+        self.position_ned_m: Optional[np.ndarray] = None  # where the last frame was placed (odometry or NED)
+        self.odometry_epoch = 0                          # + 1 each time image odometry restarts its frame
+        self.anchored = False      # image positions chained from a telemetry position less than history_s ago
+        self._telemetry_s = -math.inf                    # when the last frame with telemetry position came
+        self._chain_delta: Optional[np.ndarray] = None
 
     @property
     def ground_down_m(self) -> Optional[float]:
@@ -168,6 +187,8 @@ class MotionStage:
         self._history.clear()
         self.last, self.last_reason = None, ""
         self._ground = None
+        self.image_pose, self.position_ned_m = None, None
+        self._chain_delta, self.anchored, self._telemetry_s = None, False, -math.inf
 
     def _plane_pose(self, pose: CameraPose, time_s: float) -> CameraPose:
         """The pose with the plane at the ground last measured near the spot, when recent and lower.
@@ -206,25 +227,80 @@ class MotionStage:
         window is centred on it (else on the band's lower middle).
         """
         cfg = self.config
-        self.last = None
+        self.last, self.position_ned_m = None, None
         if not (math.isfinite(pose.agl_m) and pose.agl_m >= cfg.min_agl_m):
             self.last_reason = f"height above ground {pose.agl_m} m unusable (need >= {cfg.min_agl_m} m)"
             return None
         grey = self.grey(image)
-        pose = self._plane_pose(pose, time_s)
         while self._history and (time_s - self._history[0].time_s > cfg.history_s
                                  or self._history[0].time_s >= time_s):
             self._history.popleft()
+        source = POSE_TELEMETRY if np.all(np.isfinite(pose.position_ned_m)) else POSE_IMAGE
+        self.image_pose = None
+        if source == POSE_IMAGE:
+            pose = self._chain(grey, pose, time_s)
+        else:
+            self._telemetry_s, self.anchored = time_s, False
+            if any(s.source == POSE_IMAGE for s in self._history):
+                self._history.clear()      # odometry positions are not in the telemetry's frame
+                self._ground = None
+        raw_agl = pose.agl_m               # the image pose's metric scale: the measured height, not the plane's
+        pose = self._plane_pose(pose, time_s)
         result = None
         window = self._window(pose, focus_ned_m)
         ref = self._pick_reference(pose, window) if window is not None else None
         if window is None:
             self.last_reason = f"no ground within {cfg.max_range_m:.0f} m in view"
+        elif ref is not None and source == POSE_IMAGE:
+            located, est = self._image_pose(grey, replace(pose, agl_m=raw_agl), ref)   # the pair, directly
+            pose = replace(pose, position_ned_m=located.position_ned_m)
+            if est.ok:
+                result = self._measure(grey, pose, ref, time_s, window, est)
+            else:
+                self.last_reason = est.describe()
         elif ref is not None:
             result = self._measure(grey, pose, ref, time_s, window)
-        self._store(_Stored(time_s, grey, pose))
+        self.position_ned_m = pose.position_ned_m.copy()
+        # An anchored image position is in the telemetry's frame: a position dropout, not a new frame.
+        self._store(_Stored(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source))
         self.last = result
         return result
+
+    def _chain(self, grey: np.ndarray, pose: CameraPose, time_s: float) -> CameraPose:
+        """Place a frame without telemetry position by its image translation from the newest keyframe.
+
+        Chained from a telemetry position less than ``history_s`` ago, the frame stays in the telemetry's frame
+        (``anchored``: a short dropout, or a flickering position, keeps its evidence). Past that the odometry's
+        drift counts: a new odometry frame starts (``odometry_epoch`` + 1) where the chain is. The first frame,
+        or the first after the chain broke (blank view, too few features), starts one at the origin.
+        """
+        prev = self._history[-1] if self._history else None
+        if prev is not None:
+            located, est = self._image_pose(grey, pose, prev, self._chain_delta)
+            if est.ok:
+                self._chain_delta = est.delta_ned_m
+                was = self.anchored or prev.source == POSE_TELEMETRY
+                self.anchored = was and time_s - self._telemetry_s <= self.config.history_s
+                if was and not self.anchored:
+                    self.odometry_epoch += 1
+                return located
+            self.last_reason = est.describe()
+        self._history.clear()
+        self._chain_delta, self.anchored, self._ground = None, False, None
+        self.odometry_epoch += 1
+        return replace(pose, position_ned_m=np.zeros(3))
+
+    def _image_pose(self, grey: np.ndarray, pose: CameraPose, ref: _Stored,
+                    prior: Optional[np.ndarray] = None) -> tuple[CameraPose, ImagePose]:
+        """``pose`` placed at the keyframe's position + the images' translation (unchanged when it fails)."""
+        if prior is None and np.all(np.isfinite(pose.position_ned_m)):
+            prior = pose.position_ned_m - ref.pose.position_ned_m
+        est = estimate_translation(ref.grey, grey, self.k_cv, ref.pose.r_nc, pose.r_nc, pose.agl_m,
+                                   self.config.image_pose, prior)
+        self.image_pose = est
+        if not est.ok:
+            return pose, est
+        return replace(pose, position_ned_m=ref.pose.position_ned_m + est.delta_ned_m), est
 
     def _store(self, item: _Stored) -> None:
         h = self._history
@@ -319,7 +395,7 @@ class MotionStage:
         return items[int(enough[-1])] if enough.size else items[int(np.argmin(det))]
 
     def _measure(self, grey: np.ndarray, pose: CameraPose, ref: _Stored, time_s: float,
-                 window: tuple[slice, slice]) -> ParallaxResult:
+                 window: tuple[slice, slice], image_pose: Optional[ImagePose] = None) -> ParallaxResult:
         cfg = self.config
         rs, cs = window
         hom, rot, t, n, d = plane_homography(self.k_cv, pose, ref.pose)
@@ -382,6 +458,17 @@ class MotionStage:
             if scale > 1.0:
                 sigma0 = sigma0 * scale
                 noise_px *= scale
+        if image_pose is not None:
+            # The image pose's translation error moves the plane prediction along the parallax direction
+            # (image_motion.plane_prediction_sigma): extra noise; its scale error ε (the height above ground)
+            # makes heights read low by up to detect_sigmas · ε. Never easier than a telemetry pose.
+            g = t[:2, None] - xr * t[2]
+            pose_n = plane_prediction_sigma(xc.astype(np.float64), rot, t, n, d, image_pose.cov_ref_m2,
+                                            g).reshape(shape)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sigma_pose = np.maximum(d - ground, 0.1 * d) ** 2 / d * pose_n / gnorm
+            margin = 1.0 / max(1e-3, 1.0 - cfg.detect_sigmas * image_pose.scale_sigma_rel)
+            sigma0 = np.hypot(sigma0, sigma_pose) * margin
         height = np.where(reliable, local, np.nan).astype(np.float32)
         patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)
         rng = np.sqrt((ned[0] - pose.position_ned_m[0]) ** 2 + (ned[1] - pose.position_ned_m[1]) ** 2
@@ -396,7 +483,9 @@ class MotionStage:
         if np.any(fit != 0.0) and noise_px <= cfg.max_plane_noise_px and usable.mean() >= 0.5:
             self._ground = (time_s, float(pose.position_ned_m[2] + d - np.median(ground[usable])))
         return ParallaxResult(time_s, rs, cs, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
-                              time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & ~explained)
+                              time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & ~explained,
+                              POSE_TELEMETRY if image_pose is None else POSE_IMAGE,
+                              0.0 if image_pose is None else image_pose.sigma_m)
 
     def _ned_points(self, pose: CameraPose, xc: np.ndarray, lam_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])

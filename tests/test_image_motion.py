@@ -1,0 +1,165 @@
+"""Image-only pose fallback of motion geometry (ARCHITECTURE.md §11) on ray-cast renders of a known world.
+
+When telemetry has attitude and height above ground but no position, fusion.image_motion estimates the
+translation between frames from tracked ground features (RANSAC homography, attitude-constrained least
+squares, metric from the height). The worlds are real sim worlds (tests/test_motion.py builds them).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from edge_landing.runtime.core.camera import Attitude
+from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, EVIDENCE_IMAGE_POSE
+from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+from edge_landing.runtime.fusion.image_motion import ImagePoseConfig, estimate_translation
+from edge_landing.runtime.fusion.motion import POSE_IMAGE, POSE_TELEMETRY, CameraPose, MotionConfig, MotionStage
+
+sim = pytest.importorskip("edge_landing.sim", reason="the sim extra (embreex) renders the test worlds")
+from edge_landing.benchmarks.landing_truth import TruthConfig, check_target  # noqa: E402
+from edge_landing.benchmarks.lying_model import lying_prediction  # noqa: E402
+from tests.test_motion import EFFECTS, INTR, MOUNT, _flat_world, _frames  # noqa: E402
+
+CFG = ImagePoseConfig()
+
+
+def _views(world, poses):
+    """(grey at the motion stage's size, CameraPose) per (position, attitude)."""
+    stage = MotionStage(MotionConfig(), INTR, MOUNT)
+    renderer = sim.Renderer(world, INTR, MOUNT)
+    rng = np.random.default_rng(1)
+    out = []
+    for p, att in poses:
+        p = np.asarray(p, np.float64)
+        r = renderer.render(p, att, EFFECTS, rng)
+        out.append((stage.grey(r.rgb), CameraPose.of(MOUNT, att, p, float(-p[2]))))
+    return stage, out
+
+
+def _estimate(stage, a, b, **kw):
+    (g0, p0), (g1, p1) = a, b
+    return estimate_translation(g0, g1, stage.k_cv, p0.r_nc, p1.r_nc, p1.agl_m, kw.pop("cfg", CFG), **kw)
+
+
+def test_translation_from_images_matches_the_truth():
+    """Pairs over a grass field with a few boxes, attitude changing between frames: the recovered translation is
+    within 0.1 m + 1 % of the baseline of the rendered one (stated tolerance), quality figures say so."""
+    world = _flat_world([[30.0, 10.0, 2.0, 1.0, 1.5], [45.0, -8.0, 2.2, 0.9, 1.5]])
+    poses = [((0.0, 0.0, -40.0), Attitude(0.0, 0.0, 0.3)),
+             ((1.0, 0.3, -40.5), Attitude(0.02, -0.03, 0.32)),
+             ((6.0, 2.0, -39.0), Attitude(-0.03, 0.02, 0.25)),
+             ((12.0, -3.0, -40.0), Attitude(0.01, 0.04, 0.35))]
+    stage, views = _views(world, poses)
+    for i in (1, 2, 3):
+        truth = views[i][1].position_ned_m - views[0][1].position_ned_m
+        est = _estimate(stage, views[0], views[i], prior_delta_ned_m=None if i < 3 else truth + 0.5)
+        assert est.ok, est.reason
+        err = float(np.linalg.norm(est.delta_ned_m - truth))
+        assert err <= 0.1 + 0.01 * float(np.linalg.norm(truth)), (i, est.delta_ned_m, truth)
+        assert est.inliers >= CFG.min_inliers and est.inlier_share >= 0.5 and est.residual_px < 0.5
+        assert 0 < est.sigma_m < 0.1 and est.scale_sigma_rel == CFG.agl_sigma_rel
+
+
+def test_degenerate_inputs_give_a_reason_not_an_exception():
+    world = _flat_world([[30.0, 10.0, 2.0, 1.0, 1.5]])
+    poses = [((0.0, 0.0, -40.0), Attitude(0.0, 0.0, 0.3)), ((6.0, 2.0, -40.0), Attitude(0.0, 0.0, 0.3))]
+    stage, views = _views(world, poses)
+    (g0, p0), (g1, p1) = views
+    blank = np.full_like(g0, 128)
+    est = _estimate(stage, (blank, p0), (blank, p1))
+    assert not est.ok and est.reason.startswith("too few features") and np.all(np.isnan(est.delta_ned_m))
+    assert "too few features" in est.describe()
+    assert not _estimate(stage, (g0[:100], p0), views[1]).ok                 # sizes differ
+    bad = estimate_translation(g0, g1, stage.k_cv, p0.r_nc, p1.r_nc, float("nan"), CFG)
+    assert not bad.ok and "height above ground" in bad.reason
+    # An attitude the images contradict (yaw off by 4°) is refused, not turned into a translation.
+    wrong = CameraPose.of(MOUNT, Attitude(0.0, 0.0, 0.3 + math.radians(4.0)), p1.position_ned_m, p1.agl_m)
+    est = _estimate(stage, views[0], (g1, wrong))
+    assert not est.ok and "inconsistent with the attitude" in est.reason, est.describe()
+
+
+def test_image_pose_never_makes_detection_easier_than_telemetry():
+    """The same pair measured with telemetry positions and with the image pose: the image pose's detectable
+    heights are never smaller (its baseline error and height scale error are added)."""
+    world = _flat_world([[30.0, 0.0, 2.0, 2.0, 1.5]])
+    att = Attitude(0.0, 0.0, 0.0)
+    stage, views = _views(world, [((0.0, -3.0, -30.0), att), ((0.0, 3.0, -30.0), att)])
+    results = {}
+    for source in (POSE_TELEMETRY, POSE_IMAGE):
+        motion = MotionStage(MotionConfig(), INTR, MOUNT)
+        for k, (grey, pose) in enumerate(views):
+            if source == POSE_IMAGE:
+                pose = replace(pose, position_ned_m=np.full(3, np.nan))
+            results[source] = motion.update(grey, pose, 0.5 * k, focus_ned_m=np.array([30.0, 0.0, 0.0]))
+    tel, img = results[POSE_TELEMETRY], results[POSE_IMAGE]
+    assert tel is not None and img is not None, motion.last_reason
+    assert tel.pose_source == POSE_TELEMETRY and img.pose_source == POSE_IMAGE and img.pose_sigma_m > 0
+    assert img.baseline_m == pytest.approx(6.0, abs=0.1)
+    both = np.isfinite(tel.detectable_m) & np.isfinite(img.detectable_m)
+    assert both.sum() > 1000
+    ratio = img.detectable_m[both] / tel.detectable_m[both]
+    assert float(np.median(ratio)) >= 1.0 + 2.0 * CFG.agl_sigma_rel, float(np.median(ratio))
+
+
+def test_hover_without_position_gives_no_baseline_and_no_confirmation():
+    world = _flat_world([[30.0, 10.0, 2.0, 1.0, 1.5]])
+    hover = [(0.05 * math.sin(k), 0.05 * math.cos(k), -30.0) for k in range(12)]
+    fuser = LandingFuser(FusionConfig(), INTR, MOUNT)
+    targets = []
+    for k, t, r, state in _frames(world, hover):
+        pred = lying_prediction(INTR, MOUNT, state, k)
+        targets.append(fuser.update(pred, replace(state, position_ned_m=None), t, r.rgb))
+        est = fuser.motion.image_pose
+        if k > 0:        # the frames are placed by the images, within centimetres of where they are
+            assert fuser.motion.position_ned_m is not None
+            drift = fuser.motion.position_ned_m - (np.asarray(hover[k]) - np.asarray(hover[0]))
+            assert float(np.linalg.norm(drift[:2])) < 0.1, (k, drift, est.describe() if est else None)
+    assert not any(t.valid for t in targets)
+    assert all(t.reason.startswith("unconfirmed: geometry") for t in targets[1:]), targets[-1].reason
+
+
+def test_flight_without_position_confirms_only_safe_spots():
+    """The low pass of tests/test_motion.py (lying model, field of parked cars and a block) with telemetry that
+    has attitude and height but no position: geometry from the image pose still confirms spots, every one on
+    ground-truth safe ground (ray casting), and the evidence says the baseline came from the images."""
+    cars = [[n, e, 2.2, 0.9, 1.5] for n in np.arange(15.0, 45.0, 5.0) for e in (-12.0, -6.0, 0.0, 6.0)]
+    world = _flat_world(cars + [[30.0, 18.0, 6.0, 5.0, 6.0]])
+    path = [(-14.0 + 0.3 * k, -3.0 + 2.0 * math.sin(0.2 * k), -25.0) for k in range(60)]
+    truth = TruthConfig(log="", clearance_m=FusionConfig().required_clearance_m)
+    fuser = LandingFuser(FusionConfig(), INTR, MOUNT)
+    confirmed = 0
+    for k, t, r, state in _frames(world, path):
+        pred = lying_prediction(INTR, MOUNT, state, k)
+        target = fuser.update(pred, replace(state, position_ned_m=None), t, r.rgb)
+        if target.valid:
+            confirmed += 1
+            assert target.evidence.startswith(f"{EVIDENCE_GEOMETRY}; {EVIDENCE_IMAGE_POSE}"), target.evidence
+            assert target.position_ned_m is None and target.geometry_baseline_m > 0
+            assert target.geometry_detectable_m <= FusionConfig().obstacle_height_m
+            ned = state.position_ned_m + state.attitude.ned_from_body() @ target.position_body_frd_m
+            ok, why = check_target(world, float(ned[0]), float(ned[1]), truth)
+            assert ok, (k, why)
+    assert confirmed >= 10, confirmed
+
+
+def test_short_position_dropout_is_chained_from_the_last_telemetry_position():
+    """Telemetry position for 1 s, then 1 s without: the frames are placed in the telemetry's frame (anchored),
+    within 0.2 m of the truth, and geometry keeps measuring (pose source "image")."""
+    world = _flat_world([[30.0, 10.0, 2.0, 1.0, 1.5]])
+    path = [(-10.0 + 0.4 * k, 1.0 * math.sin(0.2 * k), -30.0) for k in range(20)]
+    motion = MotionStage(MotionConfig(), INTR, MOUNT)
+    sources = []
+    for k, t, r, state in _frames(world, path):
+        pose = CameraPose.of(MOUNT, state.attitude, state.position_ned_m, state.agl_m)
+        if k >= 10:
+            pose = replace(pose, position_ned_m=np.full(3, np.nan))
+        result = motion.update(r.rgb, pose, t, focus_ned_m=np.array([30.0, 0.0, 0.0]))
+        if k >= 10:
+            assert motion.anchored and motion.odometry_epoch == 0
+            assert motion.position_ned_m is not None
+            assert float(np.linalg.norm(motion.position_ned_m - state.position_ned_m)) < 0.2, (k, motion.position_ned_m)
+            sources.append(None if result is None else result.pose_source)
+    assert sources.count(POSE_IMAGE) >= 5, sources
