@@ -362,3 +362,69 @@ def test_clock_offset_follows_drift_and_drops_future_glitches():
             assert clock.map(remote + 1.9, arrival) is None  # stamped 1.9 s in the future: dropped
         local = clock.map(remote, arrival)
         assert local is not None and arrival - 0.1 <= local <= arrival + 1e-9, (i, arrival - local)
+
+
+def test_geometry_obstacle_on_a_committed_spot_drops_it_at_any_range():
+    """Motion geometry's obstacle vote within the required clearance of a committed spot drops it after
+    ``geometry_obstacle_frames`` (3) fused frames in a row, even from 40 m (the network's "not landable" counts
+    only within 15 m); one beyond the clearance, or a streak that breaks, does not."""
+    from edge_landing.runtime.fusion.motion_grid import GeometryView
+
+    state = VehicleState(0.0, position_ned_m=np.array([0.0, 0.0, -40.0]), agl_m=40.0)
+    spot = np.array([8.0, 0.0, 0.0])
+    cont = Continuity(ContinuityConfig(min_clearance_m=2.0))
+    for i in range(3):
+        cont.step(Target(i, float(i), True, position_body_frd_m=spot - state.position_ned_m, position_ned_m=spot,
+                         clearance_m=3.0, confidence=0.9, evidence=EVIDENCE_GEOMETRY), state, None, True)
+    assert cont.spot is not None
+    fuser = LandingFuser(FusionConfig(), Intrinsics.from_hfov(64, 48, math.radians(90.0)),
+                         Mount(pitch_rad=math.radians(-45.0)))
+    grid = fuser.fuse(_ground_prediction(0, 4.0, ground_plane_depth(48, 64, AGL_M, fuser.mount)), state, 4.0).grid
+    assert grid is not None
+
+    def geometry(north_m: float) -> GeometryView:
+        obstacle = np.zeros(grid.landable.shape, bool)
+        cell = grid.cell_of(north_m, 0.0)
+        assert cell is not None
+        obstacle[cell] = True
+        shape = obstacle.shape
+        return GeometryView(0.0, 0.5, ~obstacle, obstacle, np.full(shape, 0.2, np.float32),
+                            np.full(shape, 10.0, np.float32), np.zeros(shape))
+
+    far, near = geometry(12.0), geometry(9.5)                         # 4 m and 1.5 m from the spot
+    views = [far] * 5 + [near, near, far, near, near]                 # a streak of 2 that breaks, then 2 again
+    for k, view in enumerate(views):
+        out, said = cont.step(Target.none(5 + k, 5.0 + 0.1 * k, "no safe spot"), state, grid, True, view)
+        assert out.valid and said == "", k
+    out, said = cont.step(Target.none(20, 6.1, "no safe spot"), state, grid, True, near)
+    assert not out.valid and said == "spot dropped: geometry sees an obstacle >= 0.5 m on it" and cont.spot is None
+
+
+def test_targets_leave_expressed_at_the_newest_pose():
+    """ArduPilot rotates a BODY_FRD vector with its attitude of PLND_LAG ago (at most 0.25 s), not the capture's:
+    a target with a local position leaves re-expressed in the body frame of the newest telemetry (here 0.4 s
+    after the capture, the vehicle 2 m further north and turned 90°); one without a position leaves as it is."""
+    from types import SimpleNamespace
+
+    from edge_landing.runtime.pipeline.loop import Pipeline
+
+    buf = TelemetryBuffer()
+    for k in range(5):                                               # 10 Hz up to t = 10.4 s
+        t = 10.0 + 0.1 * k
+        yaw = 0.0 if t < 10.25 else math.pi / 2
+        buf.add_attitude(0.0, 0.0, yaw, arrival_s=t)
+        buf.add_position(0.0 if t < 10.25 else 2.0, 0.0, -30.0, arrival_s=t)
+        buf.add_relative_alt(30.0, arrival_s=t)
+    newest = buf.newest_state()
+    assert newest is not None and newest.time_s == pytest.approx(10.4)
+    spot = np.array([10.0, 0.0, 0.0])
+    target = Target(1, 10.0, True, position_body_frd_m=np.array([10.0, 0.0, 30.0]), position_ned_m=spot,
+                    range_m=math.hypot(10.0, 30.0), clearance_m=3.0, confidence=0.9, evidence=EVIDENCE_GEOMETRY)
+    holder = SimpleNamespace(telemetry=buf)
+    out, pose_time_s = Pipeline._at_newest_pose(holder, target)      # type: ignore[arg-type]
+    assert pose_time_s == pytest.approx(10.4)
+    np.testing.assert_allclose(out.position_body_frd_m, [0.0, -8.0, 30.0], atol=1e-9)   # 8 m ahead = to its left
+    assert out.range_m == pytest.approx(math.hypot(8.0, 30.0)) and out.capture_time_s == 10.0
+    np.testing.assert_allclose(out.position_ned_m, spot)
+    no_position = Target(2, 10.0, True, position_body_frd_m=np.array([10.0, 0.0, 30.0]), clearance_m=3.0)
+    assert Pipeline._at_newest_pose(holder, no_position) == (no_position, 10.0)  # type: ignore[arg-type]

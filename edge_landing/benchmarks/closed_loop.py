@@ -68,7 +68,11 @@ class LoopConfig:
     vehicle_radius_m: float = 1.0
     margin_m: float = 1.0
     max_land_time_s: float = 180.0
-    target_wait_s: float = 30.0     # hover at the start until edge-run sends a target, at most this long
+    # At the start point the driver flies survey passes across the heading (the camera gets baseline across
+    # its line of sight: motion geometry confirms nothing while hovering, ARCHITECTURE.md §11) until edge-run
+    # has committed a geometry-confirmed spot, at most target_wait_s; then LAND.
+    survey_m: float = 20.0          # passes run this far either side of the start point
+    target_wait_s: float = 90.0
     startup_timeout_s: float = 90.0
     hold_s: float = 20.0            # edge-run --hold (its default; the clock stops while over the spot)
     threads: int = 1                # edge-run --threads (ONNX Runtime)
@@ -89,7 +93,7 @@ class LoopConfig:
 
 
 def fly(cfg: LoopConfig, flight: Flight, has_target: Optional[Callable[[], bool]] = None) -> Tuple[float, float, float]:
-    """Take off, fly to the start, hover there until ``has_target()`` (at most ``target_wait_s``), LAND;
+    """Take off, fly to the start, survey passes there until ``has_target()`` (at most ``target_wait_s``), LAND;
     returns (take-off time, LAND time, touchdown time) on the local clock.
 
     ArduPilot: GUIDED, arm, MAV_CMD_NAV_TAKEOFF, position targets, LAND mode. PX4 (untested here): position
@@ -134,13 +138,9 @@ def fly(cfg: LoopConfig, flight: Flight, has_target: Optional[Callable[[], bool]
         return bool(np.linalg.norm(flight.position() - start) < 1.5) and _speed(flight) < 0.3
 
     flight.wait("the flight to the start point", settled_at_start, 120.0)
-    if has_target is not None:  # hover until edge-run sends a target, as a pilot would before LAND
+    if has_target is not None:
         try:
-            def hover_until_target() -> bool:
-                flight.goto(start, yaw)
-                return has_target()
-
-            flight.wait("edge-run's first target at the start point", hover_until_target, cfg.target_wait_s)
+            survey(cfg, flight, start, yaw, has_target)
         except InputError as exc:
             log.warning("%s; landing anyway", exc)
             flight.messages.append(f"LAND without a target: {exc}")
@@ -151,6 +151,30 @@ def fly(cfg: LoopConfig, flight: Flight, has_target: Optional[Callable[[], bool]
         flight.set_mode("LAND")
     flight.wait("touchdown (disarm)", lambda: not flight.armed, cfg.max_land_time_s + 60.0)
     return t_takeoff, t_land, time.monotonic()
+
+
+def survey(cfg: LoopConfig, flight: Flight, start: np.ndarray, yaw_rad: float, has_target: Callable[[], bool]) -> None:
+    """Fly passes across the heading through the start point until ``has_target()`` (edge-run has committed a
+    geometry-confirmed spot), at most ``target_wait_s``; as a pilot would before LAND.
+
+    Hovering gives motion geometry no baseline, so it confirms nothing (ARCHITECTURE.md §11); a sideways pass
+    moves the camera across its line of sight, which is the largest parallax per metre flown for the ground
+    ahead. Raises InputError when the time is up (the caller lands anyway and says so).
+    """
+    right = np.array([-math.sin(yaw_rad), math.cos(yaw_rad), 0.0])     # body right in local NED
+    ends = [start + cfg.survey_m * right, start - cfg.survey_m * right]
+    leg = [0]
+
+    def pass_until_target() -> bool:
+        end = ends[leg[0] % 2]
+        if float(np.linalg.norm(flight.position()[:2] - end[:2])) < 2.0:
+            leg[0] += 1
+            end = ends[leg[0] % 2]
+        flight.goto(end, yaw_rad)
+        return has_target()
+
+    flight.wait("a geometry-confirmed spot from edge-run during the survey passes", pass_until_target,
+                cfg.target_wait_s)
 
 
 def _speed(flight: Flight) -> float:
@@ -188,8 +212,9 @@ def last_committed(log_path: Path) -> Optional[np.ndarray]:
     return last
 
 
-def recently_sent(log_path: Path, frames: int = 5, sent: int = 3) -> bool:
-    """Did edge-run send a target in at least ``sent`` of its last ``frames`` decisions (its ``--log``)?"""
+def recently_committed(log_path: Path, frames: int = 5, sent: int = 3) -> bool:
+    """Did edge-run send a target in at least ``sent`` of its last ``frames`` decisions, the last of them with a
+    committed spot (its ``--log``)? Only geometry-confirmed targets are committed (ARCHITECTURE.md §11-12)."""
     try:
         with open(log_path, "rb") as f:
             f.seek(max(0, f.seek(0, 2) - 8192))
@@ -202,7 +227,8 @@ def recently_sent(log_path: Path, frames: int = 5, sent: int = 3) -> bool:
             records.append(json.loads(line))
         except ValueError:
             continue  # a line being written
-    return sum(bool(r.get("sent")) for r in records[-frames:]) >= sent
+    recent = records[-frames:]
+    return bool(recent) and bool(recent[-1].get("committed_ned_m")) and sum(bool(r.get("sent")) for r in recent) >= sent
 
 
 def _start(cmd: List[str], log_file: IO[str]) -> subprocess.Popen[bytes]:
@@ -256,7 +282,7 @@ def land_once(cfg: LoopConfig) -> LandingResult:
         flight.wait("edge-run's first decision", edge_ready, cfg.startup_timeout_s)
         if edge.poll() is not None:
             raise InputError(f"closed loop: edge-run exited with {edge.returncode}; see {out / 'edge-run.log'}")
-        t_takeoff, t_land, t_down = fly(cfg, flight, lambda: recently_sent(out / "targets.jsonl"))
+        t_takeoff, t_land, t_down = fly(cfg, flight, lambda: recently_committed(out / "targets.jsonl"))
         result.land_time_s, result.flight_time_s = t_down - t_land, t_down - t_takeoff
     except InputError as exc:
         result.notes.append(str(exc))
@@ -286,7 +312,8 @@ def land_once(cfg: LoopConfig) -> LandingResult:
 
 
 def random_start(cfg: LoopConfig, rng: np.random.Generator) -> LoopConfig:
-    """A start 30–60 m from home at a random bearing and heading whose straight path at altitude is clear."""
+    """A start 30–60 m from home at a random bearing and heading whose straight path at altitude, and the survey
+    passes across the heading, are clear of everything by 15 m."""
     from edge_landing import sim
     from edge_landing.sim.follow import place_home
 
@@ -296,7 +323,10 @@ def random_start(cfg: LoopConfig, rng: np.random.Generator) -> LoopConfig:
         dist, bearing, yaw = rng.uniform(30, 60), rng.uniform(0, 2 * math.pi), rng.uniform(-180, 180)
         n, e = dist * math.cos(bearing), dist * math.sin(bearing)
         s = np.linspace(0, 1, 40)
-        below = world.surface_z(home[0] + n * s, home[1] + e * s)
+        across = np.linspace(-cfg.survey_m, cfg.survey_m, 40)
+        right = (-math.sin(math.radians(yaw)), math.cos(math.radians(yaw)))
+        below = world.surface_z(home[0] + np.r_[n * s, n + right[0] * across],
+                                home[1] + np.r_[e * s, e + right[1] * across])
         if np.min(below - (home[2] - cfg.altitude_m)) > 15.0:
             return replace(cfg, start_north_m=round(n, 1), start_east_m=round(e, 1), start_yaw_deg=round(yaw, 1))
     raise InputError(f"no clear start point at {cfg.altitude_m:.0f} m in the {cfg.style} world of seed {cfg.seed}")

@@ -277,6 +277,12 @@ class TelemetryBuffer:
                             position_ned_m=None if pos is None else pos.astype(np.float64),
                             agl_m=agl, agl_source=source)
 
+    def newest_state(self) -> Optional[VehicleState]:
+        """The vehicle state at the newest attitude sample's time (local clock), or None without one."""
+        with self._lock:
+            newest = self._attitude.times[-1] if self._attitude.times else None
+        return None if newest is None else self.state_at(newest)
+
     def lookup(self, capture_time_s: float, now_s: Optional[float] = None) -> TelemetryMatch:
         """The state at a capture time with the freshness rule applied; ``reason`` says why it is not usable."""
         now_s = time.monotonic() if now_s is None else now_s

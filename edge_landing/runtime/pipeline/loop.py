@@ -18,8 +18,10 @@ import time
 from dataclasses import dataclass, replace
 from typing import Optional, TextIO, Tuple
 
+import numpy as np
+
 from edge_landing.runtime.core.messages import Frame, Prediction, Target
-from edge_landing.runtime.core.target_frames import target_ned
+from edge_landing.runtime.core.target_frames import body_from_ned, target_ned
 from edge_landing.runtime.fusion.result import FusionResult
 from edge_landing.runtime.io.telemetry import TelemetryMatch
 from edge_landing.runtime.pipeline.protocols import (
@@ -206,16 +208,20 @@ class Pipeline:
         target, said = result.target, ""
         if self.telemetry is not None:
             target, said = self.continuity.step(target, match.state if match.fresh else None, result.grid,
-                                                reached_fusion=work.pred.valid and match.fresh)
+                                                reached_fusion=work.pred.valid and match.fresh,
+                                                geometry=result.geometry)
         sent, why = False, "no link"
         if self.link is not None:
             self._announce_telemetry(match)
             if said:
                 self.link.send_status(said[:50], severity=4)
             target = self._recheck(target)
+            target, pose_time_s = self._at_newest_pose(target)
             sent, why = self.link.send_target(target, match.state)
             if sent:
-                s.times.add("capture_to_send", time.monotonic() - frame.capture_time_s)
+                now = time.monotonic()
+                s.times.add("capture_to_send", now - frame.capture_time_s)
+                s.times.add("pose_to_send", now - pose_time_s)
             self._statustext(target)
         s.targets += target.valid
         s.held += target.valid and target.reason.startswith("held")
@@ -242,6 +248,27 @@ class Pipeline:
             return target
         return Target.none(target.frame_id, target.capture_time_s,
                            f"held: telemetry stale at send time ({age:.2f} s old)", target.timings_s)
+
+    def _at_newest_pose(self, target: Target) -> Tuple[Target, float]:
+        """The target's body vector re-expressed from its local NED position at the newest telemetry, and the
+        time of the pose it is expressed in (ARCHITECTURE.md §8, §12).
+
+        ArduPilot rotates a BODY_FRD vector with its attitude of PLND_LAG ago (at most 0.25 s), whatever the
+        capture time: a vector expressed at the capture pose is off by the vehicle's turn and travel over the
+        capture-to-send latency beyond PLND_LAG. In the closed loop at 640×480 that latency was 0.44 s and the
+        vehicle circled the spot, tilting back and forth, without ever descending (docs/closed_loop.md); at the
+        newest pose the lag to set is the telemetry's age at send time. The spot itself is unchanged (it was
+        placed with the pose at its capture); PX4's LOCAL_NED target is the same position either way.
+        """
+        if self.telemetry is None or not target.valid or target.position_ned_m is None:
+            return target, target.capture_time_s
+        newest = self.telemetry.newest_state()
+        if newest is None or newest.position_ned_m is None or newest.time_s < target.capture_time_s:
+            return target, target.capture_time_s
+        body = body_from_ned(np.asarray(target.position_ned_m, np.float64), newest)
+        if body is None or not np.isfinite(body).all() or float(np.linalg.norm(body)) <= 0:
+            return target, target.capture_time_s
+        return replace(target, position_body_frd_m=body, range_m=float(np.linalg.norm(body))), newest.time_s
 
     def _announce_telemetry(self, match: TelemetryMatch) -> None:
         """STATUSTEXT and a log line when telemetry is lost or found (number first: the text is cut at 50)."""

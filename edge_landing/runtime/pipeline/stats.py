@@ -125,11 +125,14 @@ class RunSummary:
                 "pipeline images/s is the camera's rate; the ratio says how much CPU headroom is left.", ""]
 
     def plnd_lag_line(self) -> str:
-        """The median capture-to-send latency, which is what ArduPilot's PLND_LAG should be set to."""
-        p50 = self.times.percentiles_ms("capture_to_send", (50,))[0]
+        """What ArduPilot's PLND_LAG should be set to: the median age, at send time, of the pose a target's body
+        vector is expressed in (the newest telemetry when the target has a local position, else its capture)."""
+        p50 = self.times.percentiles_ms("pose_to_send", (50,))[0]
+        capture = self.times.percentiles_ms("capture_to_send", (50,))[0]
         if not np.isfinite(p50):
             return "capture-to-send latency: no target was sent"
-        return (f"capture-to-send latency median {p50:.0f} ms: with ArduPilot set PLND_LAG = {p50 / 1e3:.2f} "
+        return (f"capture-to-send latency median {capture:.0f} ms; targets are expressed at a pose {p50:.0f} ms old "
+                f"at send time: with ArduPilot set PLND_LAG = {min(max(p50 / 1e3, 0.02), 0.25):.2f} "
                 f"(0.02-0.25 s, needs a reboot)")
 
     def table(self) -> str:
