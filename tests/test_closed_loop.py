@@ -103,7 +103,7 @@ def test_follow_camera_renders_the_pose_the_autopilot_reports():
             model.home + np.array([0.0, 0.0, -30.0]), Attitude(0.0, 0.0, math.radians(60)))
         got = reader.renderer.geometry(reader.home_world_ned_m + pose.position_ned_m, pose.attitude)
         np.testing.assert_allclose(got.depth_m, expected.depth_m, rtol=1e-4)
-        assert frame.rgb.shape == (120, 160, 3) and frame.rgb.std() > 5     # a real image, not a blank
+        assert frame.rgb.shape == (480, 640, 3) and frame.rgb.std() > 5     # the default size; a real image
         assert state.time_s == pose.time_s and state.position_ned_m == pytest.approx([0.0, 0.0, -30.0], abs=1e-3)
         assert state.agl_m == pytest.approx(30.0, abs=0.05)                 # home is on level ground
     finally:

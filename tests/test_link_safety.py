@@ -367,7 +367,7 @@ def test_clock_offset_follows_drift_and_drops_future_glitches():
 def test_geometry_obstacle_on_a_committed_spot_drops_it_at_any_range():
     """Motion geometry's obstacle vote within the required clearance of a committed spot drops it after
     ``geometry_obstacle_frames`` (3) fused frames in a row, even from 40 m (the network's "not landable" counts
-    only within 15 m); one beyond the clearance, or a streak that breaks, does not."""
+    only within 15 m); one beyond the clearance, a streak that breaks, or one seen from over the spot, does not."""
     from edge_landing.runtime.fusion.motion_grid import GeometryView
 
     state = VehicleState(0.0, position_ned_m=np.array([0.0, 0.0, -40.0]), agl_m=40.0)
@@ -392,6 +392,10 @@ def test_geometry_obstacle_on_a_committed_spot_drops_it_at_any_range():
                             np.full(shape, 10.0, np.float32), np.zeros(shape))
 
     far, near = geometry(12.0), geometry(9.5)                         # 4 m and 1.5 m from the spot
+    over = VehicleState(4.0, position_ned_m=np.array([7.0, 0.0, -10.0]), agl_m=10.0)
+    for k in range(5):                                                # over the spot: the camera sees its edge only
+        out, said = cont.step(Target.none(30 + k, 4.0 + 0.1 * k, "no safe spot"), over, grid, True, near)
+        assert out.valid and said == "", k
     views = [far] * 5 + [near, near, far, near, near]                 # a streak of 2 that breaks, then 2 again
     for k, view in enumerate(views):
         out, said = cont.step(Target.none(5 + k, 5.0 + 0.1 * k, "no safe spot"), state, grid, True, view)
