@@ -7,6 +7,7 @@ import math
 import socket
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -127,7 +128,10 @@ def test_runtime_telemetry_at_the_frame_time_is_the_pose_the_camera_rendered():
     thread.start()
     telemetry = TelemetryBuffer()
     link = MavlinkLink(LinkConfig(f"udpin:127.0.0.1:{base + 1}"), telemetry).start()
-    reader = FollowReader(SourceConfig.from_string(f"sim-follow:suburban:0@udpin:127.0.0.1:{base}"))
+    # 160×120: this test is about time stamps, and needs many frames in 5 s on a busy machine (640×480 renders
+    # at ~0.16 s a frame on a free core)
+    reader = FollowReader(replace(SourceConfig.from_string(f"sim-follow:suburban:0@udpin:127.0.0.1:{base}"),
+                                  width=160, height=120))
     rendered = {}
     read = reader.read
 
