@@ -364,46 +364,6 @@ def test_clock_offset_follows_drift_and_drops_future_glitches():
         assert local is not None and arrival - 0.1 <= local <= arrival + 1e-9, (i, arrival - local)
 
 
-def test_geometry_obstacle_on_a_committed_spot_drops_it_at_any_range():
-    """Motion geometry's obstacle vote within the required clearance of a committed spot drops it after
-    ``geometry_obstacle_frames`` (3) fused frames in a row, even from 40 m (the network's "not landable" counts
-    only within 15 m); one beyond the clearance, a streak that breaks, or one seen from over the spot, does not."""
-    from edge_landing.runtime.fusion.motion_grid import GeometryView
-
-    state = VehicleState(0.0, position_ned_m=np.array([0.0, 0.0, -40.0]), agl_m=40.0)
-    spot = np.array([8.0, 0.0, 0.0])
-    cont = Continuity(ContinuityConfig(min_clearance_m=2.0))
-    for i in range(3):
-        cont.step(Target(i, float(i), True, position_body_frd_m=spot - state.position_ned_m, position_ned_m=spot,
-                         clearance_m=3.0, confidence=0.9, evidence=EVIDENCE_GEOMETRY), state, None, True)
-    assert cont.spot is not None
-    fuser = LandingFuser(FusionConfig(), Intrinsics.from_hfov(64, 48, math.radians(90.0)),
-                         Mount(pitch_rad=math.radians(-45.0)))
-    grid = fuser.fuse(_ground_prediction(0, 4.0, ground_plane_depth(48, 64, AGL_M, fuser.mount)), state, 4.0).grid
-    assert grid is not None
-
-    def geometry(north_m: float) -> GeometryView:
-        obstacle = np.zeros(grid.landable.shape, bool)
-        cell = grid.cell_of(north_m, 0.0)
-        assert cell is not None
-        obstacle[cell] = True
-        shape = obstacle.shape
-        return GeometryView(0.0, 0.5, ~obstacle, obstacle, np.full(shape, 0.2, np.float32),
-                            np.full(shape, 10.0, np.float32), np.zeros(shape))
-
-    far, near = geometry(12.0), geometry(9.5)                         # 4 m and 1.5 m from the spot
-    over = VehicleState(4.0, position_ned_m=np.array([7.0, 0.0, -10.0]), agl_m=10.0)
-    for k in range(5):                                                # over the spot: the camera sees its edge only
-        out, said = cont.step(Target.none(30 + k, 4.0 + 0.1 * k, "no safe spot"), over, grid, True, near)
-        assert out.valid and said == "", k
-    views = [far] * 5 + [near, near, far, near, near]                 # a streak of 2 that breaks, then 2 again
-    for k, view in enumerate(views):
-        out, said = cont.step(Target.none(5 + k, 5.0 + 0.1 * k, "no safe spot"), state, grid, True, view)
-        assert out.valid and said == "", k
-    out, said = cont.step(Target.none(20, 6.1, "no safe spot"), state, grid, True, near)
-    assert not out.valid and said == "spot dropped: geometry sees an obstacle >= 0.5 m on it" and cont.spot is None
-
-
 def test_targets_leave_expressed_at_the_newest_pose():
     """ArduPilot rotates a BODY_FRD vector with its attitude of PLND_LAG ago (at most 0.25 s), not the capture's:
     a target with a local position leaves re-expressed in the body frame of the newest telemetry (here 0.4 s

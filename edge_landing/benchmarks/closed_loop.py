@@ -214,7 +214,10 @@ def last_committed(log_path: Path) -> Optional[np.ndarray]:
 
 def recently_committed(log_path: Path, frames: int = 5, sent: int = 3) -> bool:
     """Did edge-run send a target in at least ``sent`` of its last ``frames`` decisions, the last of them with a
-    committed spot (its ``--log``)? Only geometry-confirmed targets are committed (ARCHITECTURE.md §11-12)."""
+    committed spot, and one of them a fresh confirmation rather than the spot re-sent from memory (its ``--log``)?
+    Only geometry-confirmed targets are committed (ARCHITECTURE.md §11-12). A spot held from memory may lie
+    behind the vehicle, seen during the climb: in the closed loop two such spots, 68 and 100 m from where LAND
+    began, expired (--hold, 20 s unconfirmed) before the vehicle reached them, and it came down where it was."""
     try:
         with open(log_path, "rb") as f:
             f.seek(max(0, f.seek(0, 2) - 8192))
@@ -228,7 +231,9 @@ def recently_committed(log_path: Path, frames: int = 5, sent: int = 3) -> bool:
         except ValueError:
             continue  # a line being written
     recent = records[-frames:]
-    return bool(recent) and bool(recent[-1].get("committed_ned_m")) and sum(bool(r.get("sent")) for r in recent) >= sent
+    fresh = any(r.get("sent") and not str(r.get("reason", "")).startswith("held") for r in recent)
+    return (bool(recent) and bool(recent[-1].get("committed_ned_m")) and fresh
+            and sum(bool(r.get("sent")) for r in recent) >= sent)
 
 
 def _start(cmd: List[str], log_file: IO[str]) -> subprocess.Popen[bytes]:

@@ -208,8 +208,7 @@ class Pipeline:
         target, said = result.target, ""
         if self.telemetry is not None:
             target, said = self.continuity.step(target, match.state if match.fresh else None, result.grid,
-                                                reached_fusion=work.pred.valid and match.fresh,
-                                                geometry=result.geometry)
+                                                reached_fusion=work.pred.valid and match.fresh)
         sent, why = False, "no link"
         if self.link is not None:
             self._announce_telemetry(match)

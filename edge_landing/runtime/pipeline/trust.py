@@ -7,8 +7,7 @@ BODY_FRD) or as its local NED position (PX4), as long as telemetry is fresh; the
 estimator fed while the spot is out of the camera's view (it descends vertically over it). A frame whose
 target lies elsewhere does not move a committed spot either: the spot is sent instead, so the autopilot does
 not chase a target that jumps between near-equal spots while it descends (measured in the closed loop,
-docs/closed_loop.md). The spot is dropped when fresh evidence contradicts it (the network's within ``contradiction_range_m``,
-motion geometry's obstacles at any range), when telemetry goes stale, or
+docs/closed_loop.md). The spot is dropped when fresh evidence contradicts it, when telemetry goes stale, or
 after ``hold_s`` seconds without confirmation, and the drop is announced; then a new spot can be committed.
 Pure numpy; the pipeline does the sending.
 """
@@ -24,7 +23,6 @@ import numpy as np
 from edge_landing.runtime.core.messages import Target, VehicleState
 from edge_landing.runtime.core.target_frames import body_from_ned, target_ned
 from edge_landing.runtime.fusion.grid import GridView
-from edge_landing.runtime.fusion.motion_grid import GeometryView
 
 log = logging.getLogger(__name__)
 HELD = "held: committed spot from memory"
@@ -54,12 +52,6 @@ class ContinuityConfig:
                                          # it: in the closed loop from 40 m the grid lost all clear ground
                                          # around ground-truth safe spots 15 times per landing at 45-65 m and
                                          # 14 times at 20-30 m, while every target it sent was safe
-    # Motion geometry's obstacle evidence (a vote over the frames that measured the cell, ARCHITECTURE.md §11)
-    # drops a committed spot at any range, unlike the network's "not landable" above: the spot was committed
-    # because geometry found its disc clear, so geometry now finding something >= obstacle_height_m standing
-    # within the required clearance of it is the stronger measurement, and it does not move with the metric
-    # scale (geometry places cells with the vehicle's own height above ground).
-    geometry_obstacle_frames: int = 3  # ... when it holds for this many fused frames in a row
     # Only spots the drone's own motion confirmed are committed (ARCHITECTURE.md §11): a network-only target
     # (sent under --allow-unconfirmed) is passed on but never re-sent from memory, unless this is set too.
     commit_unconfirmed: bool = False
@@ -81,23 +73,21 @@ class Continuity:
         self._candidate: Optional[np.ndarray] = None
         self._candidate_frames = 0
         self._contradicting_frames = 0
-        self._obstacle_frames = 0
         self._last_step_s: Optional[float] = None
 
     def drop(self) -> Optional[str]:
         """Forget the spot; returns an announcement when there was one."""
         had, self.spot, self._candidate, self._candidate_frames = self.spot, None, None, 0
-        self._contradicting_frames = self._obstacle_frames = 0
+        self._contradicting_frames = 0
         return "" if had is not None else None
 
     def step(self, target: Target, state: Optional[VehicleState], grid: Optional[GridView],
-             reached_fusion: bool, geometry: Optional[GeometryView] = None) -> Tuple[Target, str]:
+             reached_fusion: bool) -> Tuple[Target, str]:
         """The target to send for this frame and an announcement ('' when nothing to say).
 
         ``state`` is fresh telemetry at the capture time (None: not fresh, the spot is dropped);
         ``grid`` is this frame's grid (None when the frame did not reach it); ``reached_fusion`` is False for a
-        frame that had no evidence at all (invalid frame or model fault): nothing is sent for it, nothing dropped;
-        ``geometry`` is motion geometry's evidence on the same cells as ``grid`` (None: none this frame).
+        frame that had no evidence at all (invalid frame or model fault): nothing is sent for it, nothing dropped.
         """
         if state is None:
             return target, self._drop_said("telemetry not fresh")
@@ -124,8 +114,6 @@ class Continuity:
         age = target.capture_time_s - spot.confirmed_s
         if age > self.config.hold_s:
             return target, self._drop_said(f"not confirmed for {age:.0f} s")
-        if grid is not None and geometry is not None and self._geometry_obstacle(grid, geometry, spot, state):
-            return target, self._drop_said(f"geometry sees an obstacle >= {geometry.obstacle_height_m:.1f} m on it")
         if grid is not None and self._contradicted(grid, spot, state):
             return target, self._drop_said("fresh evidence contradicts it")
         body = body_from_ned(spot.ned_m, state)
@@ -217,28 +205,6 @@ class Continuity:
         log.info("committed spot: %.0f%% of the cells observed within %.1f m not landable for %d frames, no clear "
                  "ground within %.1f m", 100 * bad_share, self.config.contradiction_radius_m,
                  self._contradicting_frames, radius_m)
-        return True
-
-    def _geometry_obstacle(self, grid: GridView, geometry: GeometryView, spot: CommittedSpot,
-                           state: VehicleState) -> bool:
-        """Motion geometry marks an obstacle within the required clearance of the spot, ``geometry_obstacle_frames``
-        fused frames in a row (``geometry`` lies on ``grid``'s cells), the vehicle not over the spot: from there
-        the 45° camera sees at most the disc's edge in its bottom rows, where the descent moves the camera
-        nearly along the line of sight (in the closed loop one such streak at 9 m dropped a ground-truth safe
-        spot during the final descent)."""
-        window = self._window(grid, spot, self.config.min_clearance_m or spot.clearance_m)
-        position = state.position_ned_m
-        overhead = position is not None and float(np.hypot(*(np.asarray(position)[:2] - spot.ned_m[:2]))) \
-            <= self.config.overhead_m
-        if window is None or overhead or geometry.obstacle.shape != grid.landable.shape:
-            self._obstacle_frames = 0
-            return False
-        (r0, r1, c0, c1), near = window
-        self._obstacle_frames = self._obstacle_frames + 1 if bool((geometry.obstacle[r0:r1, c0:c1] & near).any()) else 0
-        if self._obstacle_frames < self.config.geometry_obstacle_frames:
-            return False
-        log.info("committed spot: geometry marks an obstacle within %.1f m of it for %d frames",
-                 self.config.min_clearance_m or spot.clearance_m, self._obstacle_frames)
         return True
 
     @staticmethod
