@@ -155,3 +155,20 @@ def test_long_flights_as_safe_at_640_and_1280_as_at_320(tmp_path_factory, style,
         r = fly(cfg, style, seed, width, height)
         assert r.false_h <= base.false_h + 0.01 and r.abs_rel <= base.abs_rel + 0.01, (r, base)
         assert r.targets >= 0.8 * base.targets, (r, base)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("style,seed", [("urban", 67), ("suburban", 15)])
+def test_what_edge_run_sends_is_safe_at_every_size(tmp_path_factory, style, seed):
+    """With motion geometry and continuity (what edge-run sends): every target at every size on ground-truth safe
+    ground, and the larger sizes give at least as many targets as 320×240 (geometry works on the camera frame at
+    its own size, so a finer frame resolves more)."""
+    from pathlib import Path
+
+    from edge_landing.benchmarks.resolution_sweep import SweepConfig, fly
+
+    cfg = SweepConfig(Path(tmp_path_factory.getbasetemp()) / "resolution_long", frames=200, pixel_every=0)
+    results = {size: fly(cfg, style, seed, *size) for size in SIZES}
+    for size, r in results.items():
+        assert r.frames == 200 and r.safe == r.targets, (size, r.failures)
+    assert all(r.targets >= results[(320, 240)].targets for r in results.values()), results
