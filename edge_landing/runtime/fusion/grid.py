@@ -146,6 +146,16 @@ def _lattice(ku: int, kv: int) -> tuple[np.ndarray, np.ndarray]:
     return aa.reshape(1, -1, 1), bb.reshape(1, -1, 1)
 
 
+def recentre(north0_m: float, east0_m: float, north_m: float, east_m: float, size: int,
+             cell_m: float) -> tuple[tuple[float, float], tuple[int, int]]:
+    """The NED origin (north, east) of a ``size``-cell square grid that puts (north, east) near its centre, on
+    whole cells, and the shift (rows, columns) of the cells from the origin (north0, east0) to it."""
+    half = size * cell_m / 2.0
+    n0 = math.floor((north_m - half) / cell_m) * cell_m
+    e0 = math.floor((east_m - half) / cell_m) * cell_m
+    return (n0, e0), (int(round((n0 - north0_m) / cell_m)), int(round((e0 - east0_m) / cell_m)))
+
+
 def splat_samples(points: np.ndarray, step_u: np.ndarray, step_v: np.ndarray, spacing_m: float,
                   max_footprint_m: float, max_per_axis: int) -> tuple[np.ndarray, np.ndarray]:
     """Spread each pixel over its footprint: returns (sample points 3×N, pixel index N).
@@ -254,12 +264,8 @@ class TopDownGrid:
 
         Also applies any pending decay; moving and decaying write one new array (never the old one).
         """
-        half = self.size * self.cell_m / 2.0
-        n0 = math.floor((north_m - half) / self.cell_m) * self.cell_m
-        e0 = math.floor((east_m - half) / self.cell_m) * self.cell_m
-        dr = int(round((n0 - self.north0_m) / self.cell_m))
-        dc = int(round((e0 - self.east0_m) / self.cell_m))
-        self.north0_m, self.east0_m = n0, e0
+        (self.north0_m, self.east0_m), (dr, dc) = recentre(self.north0_m, self.east0_m, north_m, east_m, self.size,
+                                                           self.cell_m)
         if dr != 0 or dc != 0 or self._factor != 1.0:
             self._rebuild(dr, dc)
 

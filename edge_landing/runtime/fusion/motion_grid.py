@@ -22,6 +22,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from edge_landing.runtime.fusion.grid import recentre
 from edge_landing.runtime.fusion.motion import ParallaxResult
 
 
@@ -80,12 +81,8 @@ class GeometryGrid:
 
     def centre_on(self, north_m: float, east_m: float) -> None:
         """Move so that (north, east) is near the centre (same rule as fusion's TopDownGrid), keeping the overlap."""
-        half = self.size * self.cell_m / 2.0
-        n0 = math.floor((north_m - half) / self.cell_m) * self.cell_m
-        e0 = math.floor((east_m - half) / self.cell_m) * self.cell_m
-        dr = int(round((n0 - self.north0_m) / self.cell_m))
-        dc = int(round((e0 - self.east0_m) / self.cell_m))
-        self.north0_m, self.east0_m = n0, e0
+        (self.north0_m, self.east0_m), (dr, dc) = recentre(self.north0_m, self.east0_m, north_m, east_m, self.size,
+                                                           self.cell_m)
         if dr or dc:
             self._det = _shift(self._det, dr, dc, np.inf)
             self._det_t = _shift(self._det_t, dr, dc, -np.inf)
