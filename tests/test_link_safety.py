@@ -370,7 +370,8 @@ def test_targets_leave_expressed_at_the_newest_pose():
     after the capture, the vehicle 2 m further north and turned 90°); one without a position leaves as it is."""
     from types import SimpleNamespace
 
-    from edge_landing.runtime.pipeline.loop import Pipeline
+    from edge_landing.runtime.core.camera import Mount
+    from edge_landing.runtime.pipeline.loop import Pipeline, PipelineOptions
 
     buf = TelemetryBuffer()
     for k in range(5):                                               # 10 Hz up to t = 10.4 s
@@ -384,11 +385,16 @@ def test_targets_leave_expressed_at_the_newest_pose():
     spot = np.array([10.0, 0.0, 0.0])
     target = Target(1, 10.0, True, position_body_frd_m=np.array([10.0, 0.0, 30.0]), position_ned_m=spot,
                     range_m=math.hypot(10.0, 30.0), clearance_m=3.0, confidence=0.9, evidence=EVIDENCE_GEOMETRY)
-    holder = SimpleNamespace(telemetry=buf)
+    holder = SimpleNamespace(telemetry=buf, options=PipelineOptions(mount=Mount()))
     out, pose_time_s = Pipeline._at_newest_pose(holder, target)      # type: ignore[arg-type]
     assert pose_time_s == pytest.approx(10.4)
     np.testing.assert_allclose(out.position_body_frd_m, [0.0, -8.0, 30.0], atol=1e-9)   # 8 m ahead = to its left
     assert out.range_m == pytest.approx(math.hypot(8.0, 30.0)) and out.capture_time_s == 10.0
     np.testing.assert_allclose(out.position_ned_m, spot)
+    # Range, sizes and angles follow the new body vector (one rule with fusion's: core/target_frames.aim_at_pose).
+    assert out.size_x_rad == pytest.approx(2.0 * math.atan2(3.0, out.range_m))
+    # Camera 45° down: x right = body right (-8 m), optical axis = (forward + down)/√2 (30/√2 m).
+    assert out.angle_x_rad == pytest.approx(math.atan2(-8.0, 30.0 / math.sqrt(2.0)), abs=1e-9)
+    assert out.angle_y_rad == pytest.approx(math.atan2(30.0 / math.sqrt(2.0), 30.0 / math.sqrt(2.0)), abs=1e-9)
     no_position = Target(2, 10.0, True, position_body_frd_m=np.array([10.0, 0.0, 30.0]), clearance_m=3.0)
     assert Pipeline._at_newest_pose(holder, no_position) == (no_position, 10.0)  # type: ignore[arg-type]

@@ -311,7 +311,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
         # Telemetry is required (trust rules) whenever there is any: an autopilot link or the source's own.
         has_telemetry = bool(cfg.mav) or own_telemetry
         options = PipelineOptions(cfg.max_frames, cfg.duration_s, overlap=cfg.overlap, fusion_max_hz=cfg.fusion_hz,
-                                  world_grid=cfg.grid is GridMode.NED,
+                                  world_grid=cfg.grid is GridMode.NED, mount=mount,
                                   continuity=ContinuityConfig(hold_s=cfg.hold_s,
                                                                min_clearance_m=fusion_cfg.required_clearance_m,
                                                                commit_unconfirmed=cfg.allow_unconfirmed))

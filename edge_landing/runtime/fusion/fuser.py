@@ -43,6 +43,7 @@ import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount, ned_from_camera
 from edge_landing.runtime.core.messages import EVIDENCE_NETWORK_ONLY, Prediction, Target, VehicleState
+from edge_landing.runtime.core.target_frames import aim_from_offset
 from edge_landing.runtime.fusion.config import FusionConfig
 from edge_landing.runtime.fusion.confirm import GeometryConfirmation
 from edge_landing.runtime.fusion.grid import CellRules, GridView, TopDownGrid, splat_samples
@@ -231,12 +232,12 @@ class LandingFuser:
             confirmed_view = self._confirm.confirmed_view(self._view)
             choice = choose_spot(confirmed_view, here, cfg, self._kept)
             if choice is not None:
-                return self._make_target(pred, choice, attitude, r_nc, position, hvo_h is not None, timings,
+                return self._make_target(pred, choice, attitude, position, hvo_h is not None, timings,
                                          self._confirm.evidence())
         self._kept = None
         why = self._confirm.unconfirmed_reason(proposal, self._view, position)
         if cfg.allow_unconfirmed:
-            target = self._make_target(pred, proposal, attitude, r_nc, position, hvo_h is not None, timings,
+            target = self._make_target(pred, proposal, attitude, position, hvo_h is not None, timings,
                                        f"{EVIDENCE_NETWORK_ONLY} ({why})")
             self._kept = None              # an unconfirmed spot never becomes the committed one
             return target
@@ -302,34 +303,28 @@ class LandingFuser:
         offset = (0.0, 0.0, 0.0) if position is None else tuple(float(x) for x in position)
         return self._grid.add(samples[0], samples[1], samples[2], np.take(hor_px, pix), np.take(flat_px, pix), offset)
 
-    def _make_target(self, pred: Prediction, choice: Choice, attitude: Attitude, r_nc: np.ndarray,
+    def _make_target(self, pred: Prediction, choice: Choice, attitude: Attitude,
                      position: Optional[np.ndarray], have_hvo: bool, timings: dict[str, float],
                      evidence: str = "") -> Target:
         cfg = self.config
         point = np.array([choice.north_m, choice.east_m, choice.down_m], dtype=np.float64)
         rel = point - position if position is not None else point
-        body = attitude.ned_from_body().T @ rel
-        cam = r_nc.T @ rel
-        rng = float(np.linalg.norm(rel))
+        aim = aim_from_offset(rel, attitude, choice.clearance_m, self.mount)
         clear_used = min(choice.clearance_m, cfg.clearance_saturation_m)
-        # Angular size of the clear disc: full across the line of sight, foreshortened along it.
-        size_x = 2.0 * math.atan2(clear_used, rng)
-        sin_dep = abs(rel[2]) / rng if rng > 0 else 0.0
-        size_y = 2.0 * math.atan2(clear_used * sin_dep, rng)
         confidence = (clear_used / cfg.clearance_saturation_m) * choice.flat_share
         confidence *= choice.horizontal_share if have_hvo else cfg.depth_only_confidence
-        values = [*body, *cam, rng, size_x, size_y, choice.clearance_m, confidence]
         base, det, age = self._confirm.figures(choice, self._view)
-        if not all(math.isfinite(float(v)) for v in values) or rng <= 0:
+        if aim is None or not all(math.isfinite(v) for v in (aim.angle_x_rad, aim.angle_y_rad, choice.clearance_m,
+                                                              confidence)):
             self._kept = None
             return Target.none(pred.frame_id, pred.capture_time_s, "no target: non-finite output", timings)
         self._kept = KeptSpot(choice.north_m, choice.east_m, float(pred.capture_time_s))
         return Target(
             frame_id=pred.frame_id, capture_time_s=pred.capture_time_s, valid=True,
             reason="" if have_hvo else DEGRADED_NO_HVO,
-            position_body_frd_m=body.astype(np.float64),
+            position_body_frd_m=aim.body_frd_m,
             position_ned_m=point.copy() if position is not None else None,
-            range_m=rng, angle_x_rad=math.atan2(cam[0], cam[2]), angle_y_rad=math.atan2(cam[1], cam[2]),
-            size_x_rad=size_x, size_y_rad=size_y, clearance_m=float(choice.clearance_m),
+            range_m=aim.range_m, angle_x_rad=aim.angle_x_rad, angle_y_rad=aim.angle_y_rad,
+            size_x_rad=aim.size_x_rad, size_y_rad=aim.size_y_rad, clearance_m=float(choice.clearance_m),
             confidence=float(min(max(confidence, 0.0), 1.0)), timings_s=timings, evidence=evidence,
             geometry_baseline_m=base, geometry_detectable_m=det, geometry_age_s=age)

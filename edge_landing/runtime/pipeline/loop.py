@@ -20,8 +20,9 @@ from typing import Optional, TextIO, Tuple
 
 import numpy as np
 
+from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.messages import Frame, Prediction, Target
-from edge_landing.runtime.core.target_frames import body_from_ned, target_ned
+from edge_landing.runtime.core.target_frames import aim_at_pose, aimed, target_ned
 from edge_landing.runtime.fusion.result import FusionResult
 from edge_landing.runtime.io.telemetry import TelemetryMatch
 from edge_landing.runtime.pipeline.protocols import (
@@ -53,6 +54,7 @@ class PipelineOptions:
                                  # False: a fresh vehicle-centred grid per frame (the link still gets the position)
     continuity: ContinuityConfig = ContinuityConfig()
     fresh_s: float = 0.4         # telemetry older than this at send time holds the target back
+    mount: Optional[Mount] = None  # the camera's: angles of targets re-expressed at a newer pose (kept without)
     fusion_max_hz: float = 0.0   # 0: fuse every frame. Else fuse a frame only when its capture time is at least
                                  # 1/fusion_max_hz after the last fused one's; the others are inferred but give
                                  # no target, so the model keeps the cores while targets still update at this
@@ -72,7 +74,7 @@ class Pipeline:
         self.frame_check = frame_check
         self.stop_event = threading.Event()
         self.summary = RunSummary(model_name=inference.name)
-        self.continuity = Continuity(options.continuity)
+        self.continuity = Continuity(options.continuity, options.mount)
         self.last_target: Optional[Target] = None
         self._had_target: Optional[bool] = None
         self._candidate: Optional[bool] = None
@@ -257,17 +259,18 @@ class Pipeline:
         capture-to-send latency beyond PLND_LAG. In the closed loop at 640×480 that latency was 0.44 s and the
         vehicle circled the spot, tilting back and forth, without ever descending (docs/closed_loop.md); at the
         newest pose the lag to set is the telemetry's age at send time. The spot itself is unchanged (it was
-        placed with the pose at its capture); PX4's LOCAL_NED target is the same position either way.
+        placed with the pose at its capture); PX4's LOCAL_NED target is the same position either way. Range,
+        angles and sizes follow the body vector (core/target_frames.aim_at_pose: the same rule as fusion's).
         """
         if self.telemetry is None or not target.valid or target.position_ned_m is None:
             return target, target.capture_time_s
         newest = self.telemetry.newest_state()
         if newest is None or newest.position_ned_m is None or newest.time_s < target.capture_time_s:
             return target, target.capture_time_s
-        body = body_from_ned(np.asarray(target.position_ned_m, np.float64), newest)
-        if body is None or not np.isfinite(body).all() or float(np.linalg.norm(body)) <= 0:
+        aim = aim_at_pose(np.asarray(target.position_ned_m, np.float64), newest, target.clearance_m, self.options.mount)
+        if aim is None:
             return target, target.capture_time_s
-        return replace(target, position_body_frd_m=body, range_m=float(np.linalg.norm(body))), newest.time_s
+        return aimed(target, aim), newest.time_s
 
     def _announce_telemetry(self, match: TelemetryMatch) -> None:
         """STATUSTEXT and a log line when telemetry is lost or found (number first: the text is cut at 50)."""

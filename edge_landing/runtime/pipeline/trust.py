@@ -20,8 +20,9 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.messages import Target, VehicleState
-from edge_landing.runtime.core.target_frames import body_from_ned, target_ned
+from edge_landing.runtime.core.target_frames import aim_at_pose, aimed, target_ned
 from edge_landing.runtime.fusion.grid import GridView
 
 log = logging.getLogger(__name__)
@@ -67,8 +68,10 @@ class CommittedSpot:
 
 
 class Continuity:
-    def __init__(self, config: ContinuityConfig = ContinuityConfig()):
+    def __init__(self, config: ContinuityConfig = ContinuityConfig(), mount: Optional[Mount] = None):
+        """``mount``: the camera's, for the angles of a target held from memory (NaN without it)."""
         self.config = config
+        self.mount = mount
         self.spot: Optional[CommittedSpot] = None
         self._candidate: Optional[np.ndarray] = None
         self._candidate_frames = 0
@@ -116,15 +119,14 @@ class Continuity:
             return target, self._drop_said(f"not confirmed for {age:.0f} s")
         if grid is not None and self._contradicted(grid, spot, state):
             return target, self._drop_said("fresh evidence contradicts it")
-        body = body_from_ned(spot.ned_m, state)
-        if body is None or not np.isfinite(body).all() or float(np.linalg.norm(body)) <= 0:
+        aim = aim_at_pose(spot.ned_m, state, spot.clearance_m, self.mount)
+        if aim is None:
             return target, self._drop_said("no vehicle position to re-express it")
-        rng = float(np.linalg.norm(body))
-        held = Target(target.frame_id, target.capture_time_s, True, f"{HELD} ({age:.1f} s; fusion: {target.reason})",
-                      position_body_frd_m=body, position_ned_m=spot.ned_m.copy(), range_m=rng,
-                      size_x_rad=2.0 * math.atan2(spot.clearance_m, rng), size_y_rad=2.0 * math.atan2(spot.clearance_m, rng),
-                      clearance_m=spot.clearance_m, confidence=spot.confidence * self.config.held_confidence,
-                      timings_s=target.timings_s, evidence=f"{spot.evidence} (held)" if spot.evidence else "")
+        held = aimed(Target(target.frame_id, target.capture_time_s, True,
+                            f"{HELD} ({age:.1f} s; fusion: {target.reason})", position_ned_m=spot.ned_m.copy(),
+                            clearance_m=spot.clearance_m, confidence=spot.confidence * self.config.held_confidence,
+                            timings_s=target.timings_s, evidence=f"{spot.evidence} (held)" if spot.evidence else ""),
+                     aim)
         return held, ""
 
     def _beyond_cone(self, target: Target, state: VehicleState) -> str:
