@@ -116,7 +116,9 @@ def test_overrides_and_candidates(pair, tmp_path):
 def test_edge_run_flags(pair, tmp_path, capsys):
     (choice,) = choose_files(config_from_args(["--model", str(pair["fp32"]), "--int8"]))
     assert choice.path == pair["int8"]
-    (choice,) = choose_files(config_from_args(["--model", str(pair["fp32"]), "--precision", "FP32"]))
+    # --runtime onnxruntime: this is about the file; OpenVINO may be faster on it (tests/test_runtime_choice.py)
+    (choice,) = choose_files(config_from_args(["--model", str(pair["fp32"]), "--precision", "FP32",
+                                               "--runtime", "onnxruntime"]))
     assert choice.path == pair["fp32"] and choice.line().startswith("model net.onnx (fp32): asked for")
     assert main(["--model", str(pair["fp32"]), "--precision", "fast"]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err.strip().splitlines()

@@ -30,6 +30,7 @@ EXTRA_MODULES: dict[str, tuple[str, ...]] = {
     "export": ("torch", "onnx", "onnxscript", "tqdm"),
     "sim": ("embreex", "trimesh", "tqdm"),
     "bench": ("torch", "onnx", "onnxscript", "tqdm", "matplotlib", "psutil", "openvino"),
+    "openvino": ("openvino",),
 }
 
 

@@ -29,7 +29,9 @@ from edge_landing.runtime.core.messages import Frame
 from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink
 from edge_landing.runtime.io.sources import Grabber, SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
+from edge_landing.runtime.perception.backend import RuntimeRequest
 from edge_landing.runtime.perception.precision import ModelChoice, Precision, ProbeConfig, pick_model
+from edge_landing.runtime.perception.runtime_choice import pick_runtime
 from edge_landing.runtime.pipeline import (
     ContinuityConfig,
     FrameCheck,
@@ -67,6 +69,7 @@ class RunConfig:
     depth_model: Optional[str] = None
     hvo_model: Optional[str] = None
     precision: Precision = Precision.AUTO   # auto: the faster of FP32 and its INT8 twin on this CPU
+    runtime: RuntimeRequest = RuntimeRequest.AUTO  # auto: OpenVINO too when installed, if faster here and agreeing
     calibration: Optional[str] = None
     altitude_scale: bool = True
     mav: Optional[str] = None
@@ -145,6 +148,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "its INT8 twin X.int8.onnx (if it passed edge-quantize's accuracy gate), probed once and cached in "
                    "~/.cache/edge-landing; fp32 or int8 to choose")
     m.add_argument("--int8", action="store_true", help="same as --precision int8")
+    m.add_argument("--runtime", default="auto", help="auto (default): ONNX Runtime, or OpenVINO's CPU plugin on the "
+                   "same file(s) when openvino is installed, agrees with ONNX Runtime and is faster here (probed once, "
+                   "cached); onnxruntime or openvino to choose")
     m.add_argument("--depth-model", help="depth ONNX model (with --hvo-model)")
     m.add_argument("--hvo-model", help="HVO ONNX model (with --depth-model)")
     m.add_argument("--calibration", help="calibration.json from edge-calibrate (depth scale)")
@@ -187,6 +193,7 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
     return RunConfig(camera=a.camera, camera_width=a.camera_width, camera_height=a.camera_height, fps=a.fps,
                      loop=a.loop, poses=a.poses, model=a.model, depth_model=a.depth_model, hvo_model=a.hvo_model,
                      precision=Precision.INT8 if a.int8 else Precision.from_string(a.precision),
+                     runtime=RuntimeRequest.from_string(a.runtime),
                      calibration=a.calibration, altitude_scale=not a.no_altitude_scale, mav=a.mav,
                      autopilot=Autopilot.from_string(a.autopilot), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
                      mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
@@ -204,16 +211,16 @@ def choose_files(cfg: RunConfig) -> Tuple[ModelChoice, ...]:
     probe = ProbeConfig(threads=cfg.threads)
     given = (cfg.depth_model, cfg.hvo_model) if cfg.depth_model and cfg.hvo_model else (cfg.model,) if cfg.model else ()
     paths = [Path(p) for p in given if p] or [default_model_path()]
-    return tuple(pick_model(p, cfg.precision, probe) for p in paths)
+    return tuple(pick_runtime(pick_model(p, cfg.precision, probe), p, cfg.precision, cfg.runtime, probe) for p in paths)
 
 
 def load_inference(cfg: RunConfig, out: Optional[TextIO] = None) -> Union[JointInference, PairInference]:
-    from edge_landing.runtime.perception.inference import OnnxModel
+    from edge_landing.runtime.perception.inference import OnnxModel, SessionConfig
 
     choices = choose_files(cfg)
     for choice in choices:
         print(f"edge-run: {choice.line()}", file=out or sys.stdout, flush=True)
-    models = [OnnxModel.load(c.path, cfg.threads) for c in choices]
+    models = [OnnxModel.load(c.path, config=SessionConfig(threads=cfg.threads, runtime=c.runtime)) for c in choices]
     return PairInference(models[0], models[1]) if len(models) == 2 else JointInference(models[0])
 
 

@@ -27,6 +27,7 @@ _FLAGS: Tuple[Tuple[str, Tuple[str, ...]], ...] = (
     ("AVX-512F", ("avx512f",)),
     ("AVX512_VNNI", ("avx512_vnni",)),
     ("AVX_VNNI", ("avx_vnni",)),
+    ("AVX512_BF16", ("avx512_bf16",)),   # OpenVINO runs float layers in bf16 here unless told f32 (backend.py)
     ("AMX-INT8", ("amx_int8",)),
     ("ARM-DOTPROD", ("asimddp",)),
     ("ARM-I8MM", ("i8mm",)),

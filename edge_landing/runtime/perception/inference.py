@@ -1,4 +1,4 @@
-"""ONNX Runtime inference driven only by the model contract (ARCHITECTURE.md §5).
+"""Inference driven only by the model contract (ARCHITECTURE.md §5), on ONNX Runtime or OpenVINO.
 
 The backend sits behind two methods, ``prepare`` (RGB uint8 image -> input tensor) and ``run`` (tensor ->
 raw outputs); ``decode`` turns raw outputs into metric depth and HVO probabilities. ``predict`` does all
@@ -21,6 +21,7 @@ import numpy as np
 
 from edge_landing.runtime.core.errors import ContractError, InputError
 from edge_landing.runtime.core.messages import Prediction
+from edge_landing.runtime.perception.backend import OpenVinoSession, Runtime
 from edge_landing.runtime.perception.contract import Layout, ModelContract
 from edge_landing.runtime.perception.input_fit import InputFit
 
@@ -34,6 +35,7 @@ class SessionConfig:
     # ONNX Runtime's worker threads spin after each run by default. On 2 cores that steals the CPU from
     # whatever runs next: fusion in the pipeline, or the second model of a depth + HVO pair.
     spin: bool = False
+    runtime: Runtime = Runtime.ONNXRUNTIME   # OpenVINO's CPU plugin runs the same file (perception/backend.py)
 
 
 def file_sha256(path: os.PathLike[str] | str) -> str:
@@ -72,7 +74,7 @@ def _open_session(path: Path, config: SessionConfig) -> Any:
 
 
 class OnnxModel:
-    """One ONNX Runtime session plus its contract."""
+    """One session (ONNX Runtime's, or OpenVINO's behind the same calls) plus its contract."""
 
     def __init__(self, session: Any, contract: ModelContract, path: Path) -> None:
         self.session = session
@@ -85,6 +87,9 @@ class OnnxModel:
     def load(path: os.PathLike[str] | str, threads: int = 2, config: Optional[SessionConfig] = None) -> OnnxModel:
         config = config or SessionConfig(threads=threads)
         path = Path(path)
+        if config.runtime is Runtime.OPENVINO:
+            contract = read_contract(path)    # the contract lives in the ONNX metadata, read with ONNX Runtime
+            return OnnxModel(OpenVinoSession(path, config.threads), contract, path)
         session = _open_session(path, config)
         contract = ModelContract.from_metadata(session.get_modelmeta().custom_metadata_map, where=str(path))
         return OnnxModel(session, contract, path)

@@ -25,6 +25,7 @@ import numpy as np
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.cpu_features import CpuFeatures, cpu_features
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.perception.backend import Runtime
 from edge_landing.runtime.perception.contract import Layout, ModelContract
 from edge_landing.runtime.perception.inference import SessionConfig, _open_session, file_sha256
 
@@ -56,9 +57,11 @@ class ModelChoice:
     path: Path
     precision: Precision          # FP32 or INT8: what ``path`` is
     reason: str
+    runtime: Runtime = Runtime.ONNXRUNTIME   # what runs it (perception/runtime_choice.py)
 
     def line(self) -> str:
-        return f"model {self.path.name} ({self.precision.value}): {self.reason}"
+        on = "" if self.runtime is Runtime.ONNXRUNTIME else f" on {self.runtime.value}"
+        return f"model {self.path.name} ({self.precision.value}){on}: {self.reason}"
 
 
 def cache_dir(config: ProbeConfig) -> Path:
@@ -164,17 +167,23 @@ def cache_key(fp32_sha: str, int8_sha: str, cpu: CpuFeatures, threads: int) -> s
     return f"{fp32_sha[:16]}-{int8_sha[:16]}-{cpu.key()}-ort{onnxruntime.__version__}-t{threads}"
 
 
-def _read_cache(path: Path) -> Optional[Dict[str, Any]]:
+def read_cached_json(path: Path) -> Optional[Dict[str, Any]]:
+    """A cached JSON object, or None when missing or unreadable (then the probe runs again)."""
     try:
         value = json.loads(path.read_text())
     except (OSError, ValueError):
-        return None   # missing or unreadable: probe again
-    ok = (isinstance(value, dict) and value.get("version") == CACHE_VERSION
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def _read_cache(path: Path) -> Optional[Dict[str, Any]]:
+    value = read_cached_json(path)
+    ok = (value is not None and value.get("version") == CACHE_VERSION
           and isinstance(value.get("fp32_p50_s"), float) and isinstance(value.get("int8_p50_s"), float))
     return value if ok else None
 
 
-def _write_cache(path: Path, record: Dict[str, Any]) -> bool:
+def write_cache(path: Path, record: Dict[str, Any]) -> bool:
     """Atomic write; a read-only home only costs a probe on every start (returns False)."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -198,7 +207,7 @@ def measured(fp32_path: Path, int8_path: Path, config: ProbeConfig) -> Tuple[flo
     fp32_s, int8_s = probe(fp32_path, int8_path, config)
     record = {"version": CACHE_VERSION, "fp32": str(fp32_path), "int8": str(int8_path), "fp32_p50_s": fp32_s,
               "int8_p50_s": int8_s, "threads": config.threads, "cpu": cpu.to_json(), "measured_unix_s": time.time()}
-    saved = _write_cache(path, record)
+    saved = write_cache(path, record)
     return fp32_s, int8_s, "probed now" + (f", cached in {path.parent}" if saved else " (cache folder not writable)")
 
 
