@@ -32,7 +32,8 @@ from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
 from edge_landing.runtime.io.sources import Grabber, Reader, SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
-from edge_landing.runtime.perception.inference import OnnxModel
+from edge_landing.runtime.perception.backend import Runtime
+from edge_landing.runtime.perception.inference import OnnxModel, SessionConfig
 from edge_landing.runtime.perception.scale import AltitudeScaleEstimator
 from edge_landing.runtime.pipeline import (
     JointInference,
@@ -59,6 +60,7 @@ class BenchConfig:
     warmup: int = 3
     out: Optional[str] = None
     fusion_hz: float = 15.0   # the pipeline-rate mode fuses at most this often (edge-run --fusion-hz)
+    runtime: Runtime = Runtime.ONNXRUNTIME   # the runtime that runs the given file(s) (edge-run --runtime)
 
 
 class MemoryReader(Reader):
@@ -139,12 +141,13 @@ def bench(cfg: BenchConfig) -> dict:
     from edge_landing.runtime.models import default_model_path
 
     inference: PairInference | JointInference
+    session = SessionConfig(threads=cfg.threads, runtime=cfg.runtime)
     if cfg.depth_model and cfg.hvo_model:
-        inference = PairInference(OnnxModel.load(cfg.depth_model, threads=cfg.threads),
-                                  OnnxModel.load(cfg.hvo_model, threads=cfg.threads))
+        inference = PairInference(OnnxModel.load(cfg.depth_model, config=session),
+                                  OnnxModel.load(cfg.hvo_model, config=session))
         model = inference.depth_model
     else:
-        model = OnnxModel.load(cfg.model or default_model_path(), threads=cfg.threads)
+        model = OnnxModel.load(cfg.model or default_model_path(), config=session)
         inference = JointInference(model)
     frames, intrinsics, mount = load_frames(cfg)
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # a listener, so LANDING_TARGET really goes out
@@ -200,7 +203,8 @@ def _drain(sock: socket.socket) -> None:
 
 def report(result: dict) -> str:
     lines = [f"model {result['model']} | {result['frames']} frames {result['frame_size'][1]}x{result['frame_size'][0]} "
-             f"| input {result['model_input'][1]}x{result['model_input'][0]} | {result['config']['threads']} threads",
+             f"| input {result['model_input'][1]}x{result['model_input'][0]} | {result['config']['threads']} threads "
+             f"| {result['config']['runtime']}",
              "| mode | images/s | target updates/s | p50 ms | p90 ms | p99 ms | CPU ms/frame | vs model-only |",
              "|---|---|---|---|---|---|---|---|"]
     for mode, r in result["modes"].items():
@@ -225,6 +229,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--fusion-hz", type=float, default=15.0, help="the pipeline-rate mode's fusion cap")
+    p.add_argument("--runtime", default="onnxruntime", help="onnxruntime (default) or openvino: what runs the file(s)")
     p.add_argument("--out", help="write the result as JSON")
     a = p.parse_args(argv)
     try:
@@ -238,7 +243,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     if bool(a.depth_model) != bool(a.hvo_model):
         raise InputError("--depth-model and --hvo-model go together")
     cfg = BenchConfig(a.model, a.camera, a.depth_model, a.hvo_model, a.frames, w, h, a.threads, a.rounds, out=a.out,
-                      fusion_hz=a.fusion_hz)
+                      fusion_hz=a.fusion_hz, runtime=Runtime.from_string(a.runtime))
     result = bench(cfg)
     print(report(result))
     if cfg.out:
