@@ -24,8 +24,12 @@ import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
-import cv2
 import numpy as np
+
+from edge_landing.runtime.fusion.cells import clearance_from_mask, fill_sampling_holes
+
+__all__ = ["CellRules", "GridView", "TopDownGrid", "clearance_from_mask", "fill_sampling_holes",
+           "judge_cells", "recentre", "splat_samples"]
 
 # Sum arrays kept per cell, in this order: weight (count), height, height², horizontal votes, flat votes.
 _N_SUMS = 5
@@ -395,49 +399,3 @@ def judge_cells(sums: np.ndarray, rules: CellRules) -> np.ndarray:
     sigma_n = rules.max_height_spread_m * count
     ok &= count * s_h2 - s_h * s_h <= sigma_n * sigma_n
     return ok
-
-
-def fill_sampling_holes(sums: np.ndarray, min_count: float, min_neighbours: int, in_place: bool = False
-                        ) -> np.ndarray:
-    """Give an empty cell amid observed ones the pooled sums of its 3×3 neighbourhood.
-
-    Footprint samples are spaced about one cell apart, so a cell inside observed ground can miss every
-    sample; left empty it would count as an obstacle. It gets the neighbours' pooled samples instead,
-    whose height spread then includes the differences between neighbours (a step stays a step).
-    Returns ``sums`` itself when nothing is filled, else a filled copy (or ``sums``, filled, with
-    ``in_place``). ``min_neighbours`` > 8 disables it.
-    """
-    if min_neighbours > 8:
-        return sums
-    observed = (sums[0] >= min_count).view(np.uint8)
-    rows, cols = observed.shape
-    # 3×3 sum with zeros outside; for an unobserved cell it is the number of observed neighbours.
-    neighbours = cv2.boxFilter(observed, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    candidate = (observed == 0) & (neighbours >= min_neighbours)
-    candidate[0, :] = candidate[-1, :] = False            # border cells lack a full neighbourhood
-    candidate[:, 0] = candidate[:, -1] = False
-    holes = np.flatnonzero(candidate)
-    if holes.size == 0:
-        return sums
-    flat = sums.reshape(sums.shape[0], -1)                 # a view unless the layout needs a copy
-    pooled = np.zeros((sums.shape[0], holes.size), dtype=flat.dtype)
-    for off in (-cols - 1, -cols, -cols + 1, -1, 1, cols - 1, cols, cols + 1):
-        pooled += flat[:, holes + off]
-    out = flat if in_place and np.shares_memory(flat, sums) else flat.copy()
-    out[:, holes] = pooled
-    return out.reshape(sums.shape)
-
-
-def clearance_from_mask(landable: np.ndarray, cell_m: float) -> np.ndarray:
-    """Metric distance from each landable cell centre to the nearest point of a non-landable cell.
-
-    The distance transform gives centre-to-centre distance d to the nearest bad cell; the nearest point of
-    that cell can be up to half a cell diagonal closer, so d - cell/√2 is a safe lower bound.
-    """
-    # A non-landable cell has distance 0, so d·cell - cell/√2 < 0 there and the clamp at 0 zeroes it: no mask
-    # pass needed. In place on the transform's own float32 output: no per-frame temporaries.
-    dist: np.ndarray = cv2.distanceTransform(landable.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    np.multiply(dist, np.float32(cell_m), out=dist)
-    np.subtract(dist, np.float32(cell_m / math.sqrt(2.0)), out=dist)
-    np.maximum(dist, np.float32(0.0), out=dist)
-    return dist

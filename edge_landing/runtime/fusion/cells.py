@@ -1,0 +1,72 @@
+"""Per-cell helpers of fusion's grid (ARCHITECTURE.md §6 step 5): sampling-hole filling and clearance.
+
+Pure numpy + OpenCV, no state. Cells: rows north, columns east, ``cell_m`` metres square.
+"""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+
+def fill_sampling_holes(sums: np.ndarray, min_count: float, min_neighbours: int, in_place: bool = False
+                        ) -> np.ndarray:
+    """Give an empty cell amid observed ones the pooled sums of its 3×3 neighbourhood.
+
+    Footprint samples are spaced about one cell apart, so a cell inside observed ground can miss every
+    sample; left empty it would count as an obstacle. It gets the neighbours' pooled samples instead,
+    whose height spread then includes the differences between neighbours (a step stays a step).
+    Returns ``sums`` itself when nothing is filled, else a filled copy (or ``sums``, filled, with
+    ``in_place``). ``min_neighbours`` > 8 disables it.
+    """
+    if min_neighbours > 8:
+        return sums
+    observed = (sums[0] >= min_count).view(np.uint8)
+    rows, cols = observed.shape
+    # 3×3 sum with zeros outside; for an unobserved cell it is the number of observed neighbours.
+    neighbours = cv2.boxFilter(observed, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    candidate = (observed == 0) & (neighbours >= min_neighbours)
+    candidate[0, :] = candidate[-1, :] = False            # border cells lack a full neighbourhood
+    candidate[:, 0] = candidate[:, -1] = False
+    holes = np.flatnonzero(candidate)
+    if holes.size == 0:
+        return sums
+    flat = sums.reshape(sums.shape[0], -1)                 # a view unless the layout needs a copy
+    pooled = np.zeros((sums.shape[0], holes.size), dtype=flat.dtype)
+    for off in (-cols - 1, -cols, -cols + 1, -1, 1, cols - 1, cols, cols + 1):
+        pooled += flat[:, holes + off]
+    out = flat if in_place and np.shares_memory(flat, sums) else flat.copy()
+    out[:, holes] = pooled
+    return out.reshape(sums.shape)
+
+
+def clearance_from_mask(landable: np.ndarray, cell_m: float) -> np.ndarray:
+    """Metric distance from each landable cell centre to the nearest point of a non-landable cell.
+
+    The distance transform gives centre-to-centre distance d to the nearest bad cell; the nearest point of
+    that cell can be up to half a cell diagonal closer, so d - cell/√2 is a safe lower bound.
+    Only the bounding box of the landable cells plus a one-cell ring is transformed: every cell outside it
+    is non-landable and never nearer than the ring cell between (clamping a cell onto the box shortens
+    each coordinate difference), so the result is the same as the whole mask's, for a fraction of the cost
+    (the grid is 200×200 cells; the landable part is usually a small share of it).
+    """
+    out = np.zeros(landable.shape, np.float32)
+    rows = np.flatnonzero(landable.any(axis=1))
+    if rows.size == 0:
+        return out
+    cols = np.flatnonzero(landable.any(axis=0))
+    r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, landable.shape[0])
+    c0, c1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, landable.shape[1])
+    out[r0:r1, c0:c1] = _clearance(np.ascontiguousarray(landable[r0:r1, c0:c1]), cell_m)
+    return out
+
+
+def _clearance(landable: np.ndarray, cell_m: float) -> np.ndarray:
+    # A non-landable cell has distance 0, so d·cell - cell/√2 < 0 there and the clamp at 0 zeroes it: no mask
+    # pass needed. In place on the transform's own float32 output: no per-frame temporaries.
+    dist: np.ndarray = cv2.distanceTransform(landable.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    np.multiply(dist, np.float32(cell_m), out=dist)
+    np.subtract(dist, np.float32(cell_m / math.sqrt(2.0)), out=dist)
+    np.maximum(dist, np.float32(0.0), out=dist)
+    return dist
