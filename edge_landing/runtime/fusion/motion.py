@@ -31,7 +31,15 @@ from edge_landing.runtime.fusion.motion_config import (
     MotionConfig,
     ParallaxResult,
 )
-from edge_landing.runtime.fusion.parallax import CameraPose, fit_ground, ground_surface, parallax_height, plane_homography
+from edge_landing.runtime.fusion.parallax import (
+    CameraPose,
+    fit_ground,
+    ground_surface,
+    ned_points,
+    parallax_height,
+    plane_homography,
+    row_nanmedian,
+)
 
 __all__ = ["POSE_IMAGE", "POSE_TELEMETRY", "CameraPose", "DisPreset", "MotionConfig", "MotionStage", "ParallaxResult",
            "parallax_height", "plane_homography"]
@@ -58,6 +66,7 @@ class MotionStage:
         i = self.intrinsics
         # OpenCV's warps and flows put pixel centres at integers; the runtime's rays at +0.5.
         self.k_cv = np.array([[i.fx, 0.0, i.cx - 0.5], [0.0, i.fy, i.cy - 0.5], [0.0, 0.0, 1.0]])
+        self._k_inv = np.linalg.inv(self.k_cv)
         self._undistort = None
         if i.dist:   # the plane model is pinhole: undistort frames once into the same camera without distortion
             self._undistort = cv2.initUndistortRectifyMap(self.k_cv, np.asarray(i.dist, np.float64), None,
@@ -268,7 +277,7 @@ class MotionStage:
         uu, vv = np.meshgrid(np.linspace(cs.start + 0.1 * (cs.stop - cs.start), cs.stop - 1, 5),
                              np.linspace(rs.start + 0.1 * (rs.stop - rs.start), rs.stop - 1, 4))
         probes = np.vstack([uu.ravel(), vv.ravel()])
-        k_inv = np.linalg.inv(self.k_cv)
+        k_inv = self._k_inv
         xc = (k_inv @ np.vstack([probes, np.ones(probes.shape[1])]))
         items = list(self._history)
         r_ref = np.stack([it.pose.r_nc for it in items])                        # M×3×3 NED <- ref camera
@@ -288,8 +297,8 @@ class MotionStage:
             g = (t[:, :2, None] - xr * t[:, 2:3, None]) / z0[:, None]
             gnorm = np.where(inside, np.hypot(g[:, 0], g[:, 1]), np.nan)
             f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
-            det = cfg.detect_sigmas * d * (cfg.flow_noise_px / f) / np.nanmedian(
-                np.where(inside.any(axis=1, keepdims=True), gnorm, 0.0), axis=1)
+            det = cfg.detect_sigmas * d * (cfg.flow_noise_px / f) / row_nanmedian(
+                np.where(inside.any(axis=1, keepdims=True), gnorm, 0.0))
         det = np.where((inside.mean(axis=1) >= cfg.min_overlap) & np.isfinite(det), det, np.inf)
         if not np.isfinite(det).any():
             self.last_reason = "no keyframe with baseline overlaps the current view (hovering?)"
@@ -321,7 +330,7 @@ class MotionStage:
         ur, vr = qx / qz, qy / qz
         h, w = self.size_hw
         in_ref = (qz > 0) & (ur >= 0) & (ur <= w - 1) & (vr >= 0) & (vr <= h - 1)
-        k_inv = np.linalg.inv(self.k_cv)
+        k_inv = self._k_inv
         xr = np.stack([(ur - self.k_cv[0, 2]) * k_inv[0, 0], (vr - self.k_cv[1, 2]) * k_inv[1, 1]]).reshape(2, -1)
         xc = np.stack([self._norm[0][rs, cs], self._norm[1][rs, cs]]).reshape(2, -1)
         hgt, gnorm, cross = parallax_height(xc.astype(np.float64), xr.astype(np.float64), rot, t, n, d)
@@ -338,7 +347,7 @@ class MotionStage:
         # NED point of each pixel at its measured height (the plane point where the flow is not trusted). The
         # height may be negative (ground below the plane: the point is farther along its ray than the plane's).
         lam_scale = np.where(explained, np.clip(1.0 - np.where(explained, hgt, 0.0) / d, 0.05, 20.0), 1.0)
-        ned, nx = self._ned_points(pose, xc, lam_scale.reshape(-1))
+        ned, nx = ned_points(pose, xc, lam_scale.reshape(-1))
         ned = ned.reshape((3,) + shape)
         near = (nx.reshape(shape) > 0) & (np.hypot(ned[0] - pose.position_ned_m[0],
                                                    ned[1] - pose.position_ned_m[1]) <= cfg.max_range_m)
@@ -390,14 +399,3 @@ class MotionStage:
                               time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & ~explained,
                               POSE_TELEMETRY if image_pose is None else POSE_IMAGE,
                               0.0 if image_pose is None else image_pose.sigma_m)
-
-    def _ned_points(self, pose: CameraPose, xc: np.ndarray, lam_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
-        nx = n[0] * xc[0] + n[1] * xc[1] + n[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam = np.where(nx > 0, pose.agl_m / nx, np.nan) * lam_scale
-        r = pose.r_nc
-        pts = np.empty((3, xc.shape[1]), np.float64)
-        for i in range(3):
-            pts[i] = (r[i, 0] * xc[0] + r[i, 1] * xc[1] + r[i, 2]) * lam + pose.position_ned_m[i]
-        return pts, nx
