@@ -22,7 +22,14 @@ EVIDENCE_IMAGE_POSE = "baseline from image pose"
 @dataclass(frozen=True)
 class Frame:
     """One camera image. ``rgb`` is uint8 H×W×3 in RGB order. ``valid`` is False (with a ``reason``) when the
-    source could tell that the image did not decode completely (ARCHITECTURE.md §12)."""
+    source could tell that the image did not decode completely (ARCHITECTURE.md §12).
+
+    ``clock_lag_s``: how far the frame's clock ran behind ``time.monotonic()`` when the source handed it over.
+    0 for a camera (stamped on the monotonic clock). A simulated or replayed flight stamps its frames with
+    the flight's own time mapped onto a monotonic base fixed at its start (so frame pairing depends on the
+    flight, not on how fast it rendered); a render slower than real time falls behind by this much, and the
+    age rules (stale frame, target too old) count from the hand-over: ``time.monotonic() - clock_lag_s``
+    is "now" on the frame's clock."""
 
     frame_id: int
     capture_time_s: float
@@ -30,6 +37,7 @@ class Frame:
     source: str = ""
     valid: bool = True
     reason: str = ""
+    clock_lag_s: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -46,6 +46,8 @@ class FusionConfig:
     geometry_memory_s: float = 30.0               # how long a geometry confirmation holds (hover, descent)
     geometry_interval_s: float = 0.2              # the motion stage runs at most this often (0: every frame)
     allow_unconfirmed: bool = False               # send network-only spots when geometry cannot confirm
+    confirm_on_horizontal: bool = True            # geometry-clear cells HVO calls horizontal may be confirmed
+                                                  # without the depth flatness tests (fusion.confirm, §11)
     motion: MotionConfig = MotionConfig()
 
     def __post_init__(self) -> None:

@@ -31,6 +31,31 @@ if TYPE_CHECKING:
     from edge_landing.runtime.fusion.config import FusionConfig
 
 
+def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, float], config: FusionConfig,
+                     count: int = 3, separation_m: float = 10.0) -> np.ndarray:
+    """Up to ``count`` network-landable spots (K×3 NED or grid frame) for the motion stage's window: ``first``
+    (the network's spot), then the best-scoring others at least ``separation_m`` from those already taken.
+    The stage measures where a keyframe sees best (fusion.motion), so ground off the vehicle's line of
+    flight gets measured too."""
+    need = config.required_clearance_m
+    idx = np.flatnonzero(view.clearance_m.ravel() >= need - 1e-6)
+    out = [np.asarray(first, np.float64)]
+    if idx.size == 0 or count <= 1:
+        return np.stack(out)
+    rows, cols = np.divmod(idx, view.shape[1])
+    north = view.north0_m + (rows + 0.5) * view.cell_m
+    east = view.east0_m + (cols + 0.5) * view.cell_m
+    score = np.minimum(view.clearance_m.ravel()[idx], config.clearance_saturation_m) \
+        - config.travel_penalty_per_m * np.hypot(north - here_ne[0], east - here_ne[1])
+    for i in np.argsort(-score, kind="stable"):
+        if len(out) >= count:
+            break
+        if all(math.hypot(north[i] - p[0], east[i] - p[1]) >= separation_m for p in out):
+            down, _, _ = view.cell_stats(int(rows[i]), int(cols[i]))
+            out.append(np.array([north[i], east[i], down if math.isfinite(down) else first[2]]))
+    return np.stack(out)
+
+
 class GeometryConfirmation:
     """Per-stream geometry evidence: ``run`` once per fused frame, then ask about spots on that frame's grid."""
 
@@ -53,8 +78,9 @@ class GeometryConfirmation:
 
     def run(self, view: Optional[GridView], image: Optional[np.ndarray], state: Optional[VehicleState],
             position: Optional[np.ndarray], t_cap: float, focus: Optional[np.ndarray]) -> Optional[GeometryView]:
-        """Run the motion stage on this frame (its window centred on the network's candidate ``focus``, NED)
-        when due, and return the evidence aligned with the fusion grid ``view`` (or None)."""
+        """Run the motion stage on this frame (its window centred on one of the network's candidate spots
+        ``focus``, K×3 NED, the first preferred; see focus_candidates) when due, and return the evidence
+        aligned with the fusion grid ``view`` (or None)."""
         self.view = None
         agl = math.nan if state is None or state.agl_m is None else float(state.agl_m)
         if view is None or (position is None and (image is None or not math.isfinite(agl))):
@@ -106,9 +132,23 @@ class GeometryConfirmation:
             self.grid.add(result)
         return position if position is not None else self.motion.position_ned_m
 
-    def confirmed_view(self, view: GridView) -> GridView:
-        """``view`` with only the cells that are network-landable and geometry-clear (clearance recomputed)."""
-        landable = view.landable if self.view is None else view.landable & self.view.clear
+    def confirmed_view(self, view: GridView, use_hvo: bool = True) -> GridView:
+        """``view`` with only the cells that geometry confirmed clear and the network does not object to
+        (clearance recomputed).
+
+        Not objecting: network-landable, or, with an HVO head and ``confirm_on_horizontal``, observed and
+        horizontal by HVO (the surface's class: slopes, walls, vegetation). The network's own flatness tests
+        (depth slope, height spread of 0.1 m) are left to geometry there: at 60-90 m range the network's depth
+        spread fails on most open ground (measured: a 2 m landable disc on few frames of hazard-rich flights),
+        while geometry measured the cell to the obstacle height. A network that objects to nothing (the
+        flat-lying model of benchmarks/lying_model.py) leaves geometry alone, which stayed all safe there."""
+        if self.view is None:
+            return view
+        allowed = view.landable
+        if use_hvo and self.config.confirm_on_horizontal:
+            with np.errstate(invalid="ignore"):
+                allowed = allowed | (view.observed & (view.horizontal_share >= self.config.min_horizontal_share))
+        landable = allowed & self.view.clear
         return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
 
     def evidence(self) -> str:
@@ -119,7 +159,8 @@ class GeometryConfirmation:
             out = f"{out}; {EVIDENCE_IMAGE_POSE}{sigma}"
         return out if not self.note else f"{out}; {self.note}"
 
-    def unconfirmed_reason(self, proposal: Choice, view: Optional[GridView], position: Optional[np.ndarray]) -> str:
+    def unconfirmed_reason(self, proposal: Choice, view: Optional[GridView], position: Optional[np.ndarray],
+                           use_hvo: bool = True) -> str:
         """Why the network's spot is not sent: what geometry knows about its cell, and the best confirmed disc."""
         cfg, geo = self.config, self.view
         if geo is None or view is None:
@@ -127,7 +168,7 @@ class GeometryConfirmation:
         cell = view.cell_of(proposal.north_m, proposal.east_m)
         if cell is None:
             return "unconfirmed: spot outside the geometry grid"
-        best = float(self.confirmed_view(view).clearance_m.max())
+        best = float(self.confirmed_view(view, use_hvo).clearance_m.max())
         tail = f"; best confirmed clearance {best:.1f} m < {cfg.required_clearance_m:.1f} m"
         tail += f" ({self.note})" if self.note else ""
         if geo.obstacle[cell]:

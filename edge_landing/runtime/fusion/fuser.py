@@ -45,7 +45,7 @@ from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount, ned_fr
 from edge_landing.runtime.core.messages import EVIDENCE_NETWORK_ONLY, Prediction, Target, VehicleState
 from edge_landing.runtime.core.target_frames import aim_from_offset
 from edge_landing.runtime.fusion.config import FusionConfig
-from edge_landing.runtime.fusion.confirm import GeometryConfirmation
+from edge_landing.runtime.fusion.confirm import GeometryConfirmation, focus_candidates
 from edge_landing.runtime.fusion.grid import CellRules, GridView, TopDownGrid, splat_samples
 from edge_landing.runtime.fusion.landing import Choice, KeptSpot, choose_spot
 from edge_landing.runtime.fusion.motion_grid import GeometryView
@@ -219,23 +219,25 @@ class LandingFuser:
             if kept is not None and t_cap - kept.time_s > cfg.keep_target_s:
                 setattr(self, name, None)
         proposal = choose_spot(self._view, here, cfg, self._tracked)
-        focus = None if proposal is None else np.array([proposal.north_m, proposal.east_m, proposal.down_m])
+        focus = None if proposal is None else focus_candidates(
+            self._view, np.array([proposal.north_m, proposal.east_m, proposal.down_m]), here, cfg)
         t_geo = time.perf_counter()
         geo = self._confirm.run(self._view, image, state, position, t_cap, focus)
         timings["geometry"] = time.perf_counter() - t_geo
-        if proposal is None:
-            self._kept = self._tracked = None
-            best = float(self._view.clearance_m.max())
-            return none(f"no safe spot: best clearance {best:.2f} m < required {cfg.required_clearance_m:.2f} m")
-        self._tracked = KeptSpot(proposal.north_m, proposal.east_m, t_cap)
+        self._tracked = None if proposal is None else KeptSpot(proposal.north_m, proposal.east_m, t_cap)
         if geo is not None:
-            confirmed_view = self._confirm.confirmed_view(self._view)
+            # Geometry-clear ground the network does not object to (fusion.confirm.confirmed_view), with or
+            # without a network spot of its own.
+            confirmed_view = self._confirm.confirmed_view(self._view, hvo_h is not None)
             choice = choose_spot(confirmed_view, here, cfg, self._kept)
             if choice is not None:
                 return self._make_target(pred, choice, attitude, position, hvo_h is not None, timings,
                                          self._confirm.evidence())
         self._kept = None
-        why = self._confirm.unconfirmed_reason(proposal, self._view, position)
+        if proposal is None:
+            best = float(self._view.clearance_m.max())
+            return none(f"no safe spot: best clearance {best:.2f} m < required {cfg.required_clearance_m:.2f} m")
+        why = self._confirm.unconfirmed_reason(proposal, self._view, position, hvo_h is not None)
         if cfg.allow_unconfirmed:
             target = self._make_target(pred, proposal, attitude, position, hvo_h is not None, timings,
                                        f"{EVIDENCE_NETWORK_ONLY} ({why})")

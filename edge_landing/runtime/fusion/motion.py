@@ -136,8 +136,8 @@ class MotionStage:
                focus_ned_m: Optional[np.ndarray] = None) -> Optional[ParallaxResult]:
         """Add a frame; returns its height evidence, or None (``last_reason`` says why).
 
-        ``focus_ned_m``: a candidate spot (local NED); when the ground band is larger than ``window_hw`` the
-        window is centred on it (else on the band's lower middle).
+        ``focus_ned_m``: a candidate spot (local NED, 3) or several (K×3, the first preferred); when the ground
+        band is larger than ``window_hw`` the window is centred on the one a keyframe sees best (else it scans).
         """
         cfg = self.config
         self.last, self.position_ned_m = None, None
@@ -160,8 +160,7 @@ class MotionStage:
         raw_agl = pose.agl_m               # the image pose's metric scale: the measured height, not the plane's
         pose = self._plane_pose(pose, time_s)
         result = None
-        window = self._window(pose, focus_ned_m)
-        ref = self._pick_reference(pose, window) if window is not None else None
+        window, ref = self._choose_window(pose, focus_ned_m)
         if window is None:
             self.last_reason = f"no ground within {cfg.max_range_m:.0f} m in view"
         elif ref is not None and source == POSE_IMAGE:
@@ -226,6 +225,28 @@ class MotionStage:
         while len(h) > self.config.max_frames:
             h.popleft()
 
+    def _choose_window(self, pose: CameraPose, focus: Optional[np.ndarray]
+                       ) -> tuple[Optional[tuple[slice, slice]], Optional[_Stored]]:
+        """The window and keyframe for this frame: among the candidate spots, the one whose best keyframe detects
+        the smallest height (the first unless another is ``focus_preference`` times better). The network's spot
+        often lies where the vehicle is flying to, near the epipole, where no baseline gives parallax: a
+        window there measures nothing a confirmation can use, while other landable ground would confirm."""
+        foci: list[Optional[np.ndarray]] = [None] if focus is None else list(np.atleast_2d(focus))
+        best: tuple[Optional[tuple[slice, slice]], Optional[_Stored]] = (None, None)
+        best_det, reason = math.inf, ""
+        for k, spot in enumerate(foci):
+            window = self._window(pose, spot)
+            if window is None:
+                continue
+            ref, det = self._pick_reference(pose, window)
+            if best[0] is None:
+                best, reason = (window, ref), self.last_reason
+            score = det / self.config.focus_preference if k == 0 else det
+            if ref is not None and score < best_det:
+                best, best_det, reason = (window, ref), score, ""
+        self.last_reason = reason
+        return best
+
     def _window(self, pose: CameraPose, focus: Optional[np.ndarray]) -> Optional[tuple[slice, slice]]:
         """Rows and columns DIS runs on: the ground band within max_range_m, cropped to window_hw."""
         h, w = self.size_hw
@@ -249,7 +270,8 @@ class MotionStage:
         # that the evidence (kept for tens of seconds) covers where a spot may be proposed later, instead of
         # always the same patch below the vehicle.
         k = self._scan
-        self._scan = (k + 1) % 6
+        if focus is None:
+            self._scan = (k + 1) % 6
         cu = (0.5 + (k % 3 - 1) * 0.34) * w
         cv = h - 0.5 * wh if k < 3 else row0 + 0.5 * wh
         if focus is not None:
@@ -261,7 +283,7 @@ class MotionStage:
         r0 = int(np.clip(round(cv - wh / 2), row0, h - wh))
         return slice(r0, r0 + wh), slice(c0, c0 + ww)
 
-    def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice]) -> Optional[_Stored]:
+    def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice]) -> tuple[Optional[_Stored], float]:
         """The newest keyframe that detects ``enough_detect_m`` with margin, else the most sensitive one.
 
         All stored frames are scored at once at a few probe pixels of the window: the smallest height they
@@ -270,7 +292,7 @@ class MotionStage:
         """
         if not self._history:
             self.last_reason = "no earlier frame yet"
-            return None
+            return None, math.inf
         cfg = self.config
         h, w = self.size_hw
         rs, cs = window
@@ -299,13 +321,20 @@ class MotionStage:
             f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
             det = cfg.detect_sigmas * d * (cfg.flow_noise_px / f) / row_nanmedian(
                 np.where(inside.any(axis=1, keepdims=True), gnorm, 0.0))
-        det = np.where((inside.mean(axis=1) >= cfg.min_overlap) & np.isfinite(det), det, np.inf)
+        # The noise-floor model above favours the longest baseline, but past about half the range to the ground
+        # the two views differ too much (anything off the plane, occlusions) and the flow fails: measured noise
+        # went from ~0.2 px to 1-6 px, the detectable height from ~0.5 m to 2-8 m (docs/ARCHITECTURE.md §11).
+        with np.errstate(invalid="ignore"):
+            rng = np.nanmedian(np.where(nx > 0, d / nx, np.nan) * np.sqrt(1.0 + xc[0] ** 2 + xc[1] ** 2))
+        short = np.linalg.norm(t, axis=1) <= cfg.max_baseline_ratio * rng if math.isfinite(rng) else True
+        det = np.where((inside.mean(axis=1) >= cfg.min_overlap) & np.isfinite(det) & short, det, np.inf)
         if not np.isfinite(det).any():
-            self.last_reason = "no keyframe with baseline overlaps the current view (hovering?)"
-            return None
+            self.last_reason = "no keyframe with a usable baseline overlaps the current view (hovering?)"
+            return None, math.inf
         # A longer baseline than needed only adds occlusion and resampling blur.
         enough = np.flatnonzero(det <= cfg.enough_detect_m)
-        return items[int(enough[-1])] if enough.size else items[int(np.argmin(det))]
+        pick = int(enough[-1]) if enough.size else int(np.argmin(det))
+        return items[pick], float(det[pick])
 
     def _measure(self, grey: np.ndarray, pose: CameraPose, ref: _Stored, time_s: float,
                  window: tuple[slice, slice], image_pose: Optional[ImagePose] = None) -> ParallaxResult:

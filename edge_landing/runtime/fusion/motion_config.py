@@ -47,6 +47,8 @@ class MotionConfig:
     flow_noise_px: float = 0.2           # floor of the residual flow's 1-σ error (each pair measures its own)
     detect_sigmas: float = 3.0           # a height is detectable at this many σ
     enough_detect_m: float = 0.25        # the newest keyframe detecting this is preferred to longer baselines
+    max_baseline_ratio: float = 0.5     # keyframes farther than this × the range to the ground are not paired
+    focus_preference: float = 1.5        # the first candidate spot's window wins unless another detects this × less
     dis_preset: DisPreset = DisPreset.FAST
     dis_patch_px: int = 4                # DIS patch side and stride: the patch's footprint on the ground
     dis_patch_stride_px: int = 2         # bounds the narrowest feature resolved (max_patch_footprint_m)
@@ -73,7 +75,8 @@ class MotionConfig:
                              f"{self.max_width_px})")
         for name in ("history_s", "flow_noise_px", "detect_sigmas", "max_range_m", "max_photometric_error",
                      "max_cross_parallax_px", "max_sigma_h_m", "min_agl_m", "enough_detect_m",
-                     "max_patch_footprint_m", "max_plane_noise_px"):
+                     "max_patch_footprint_m", "max_plane_noise_px", "max_baseline_ratio",
+                     "focus_preference"):
             if not getattr(self, name) > 0:
                 raise InputError(f"motion {name} must be > 0, got {getattr(self, name)}")
         if self.max_frames < 2:

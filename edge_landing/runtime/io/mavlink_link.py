@@ -162,8 +162,10 @@ class MavlinkLink:
                 and self.heard_age_s(now) <= self.config.heard_within_s)
 
     # -- sending (pipeline thread) ----------------------------------------------------------------------
-    def send_target(self, target: Target, state: Optional[VehicleState]) -> Tuple[bool, str]:
-        """Send LANDING_TARGET for a valid target; returns (sent, why not). Sent means it left the socket."""
+    def send_target(self, target: Target, state: Optional[VehicleState],
+                    clock_lag_s: float = 0.0) -> Tuple[bool, str]:
+        """Send LANDING_TARGET for a valid target; returns (sent, why not). Sent means it left the socket.
+        ``clock_lag_s``: the frame's Frame.clock_lag_s (a simulated flight's clock behind this one)."""
         if not target.valid or target.position_body_frd_m is None:
             return False, target.reason or "no target"
         body = np.asarray(target.position_body_frd_m, dtype=np.float64)
@@ -171,7 +173,7 @@ class MavlinkLink:
         if not np.isfinite(body).all() or distance <= 0:
             return False, "target position is not finite"
         now = time.monotonic()
-        age = now - target.capture_time_s
+        age = now - clock_lag_s - target.capture_time_s
         if age > self.config.max_target_age_s:
             self.counts.add("dropped_old_targets")
             return False, f"target too old: captured {age:.2f} s ago (limit {self.config.max_target_age_s:g} s)"

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import glob
 import logging
+import math
 import os
 import threading
 import time
@@ -105,7 +106,9 @@ class Reader:
     it raises OSError when a live device fails (the grabber then reopens it). ``problem`` says why the last
     image is not to be trusted ('' when it is), ``intrinsics``/``mount`` are known by a synthetic camera,
     ``last_state`` is the vehicle state of the last image when the source knows it (sim, pose replay),
-    ``capture_time_s`` the monotonic time the last image was taken when the source knows it (sim-follow)."""
+    ``capture_time_s`` the monotonic time the last image was taken when the source knows it (sim-follow),
+    ``sim_time_s`` the flight's own time of the last image when the source simulates or replays a flight
+    (the sim camera, a pose replay): the grabber maps it onto a monotonic base fixed at the first frame."""
 
     name = ""
     problem = ""
@@ -113,6 +116,7 @@ class Reader:
     mount: Optional[Mount] = None
     last_state: Optional[VehicleState] = None
     capture_time_s: Optional[float] = None  # time.monotonic() when the last image was taken, if the reader knows
+    sim_time_s: Optional[float] = None      # the simulated flight's time of the last image (s), if it has one
 
     def read(self) -> Optional[np.ndarray]:
         raise NotImplementedError
@@ -273,6 +277,7 @@ class SimReader(Reader):
                 return None  # the flight is over: end the run cleanly
             self._frames_left -= 1
         rgb, _pose, self.last_state = self.camera.read()
+        self.sim_time_s = self.last_state.time_s
         out: np.ndarray = rgb
         return out
 
@@ -306,6 +311,7 @@ class PoseReplayReader(Reader):
         self.problem = self.inner.problem
         if rgb is not None:
             self.last_state = self.states[self._index] if self._index < len(self.states) else None
+            self.sim_time_s = None if self.last_state is None else self.last_state.time_s
             self._index += 1
         return rgb
 
@@ -354,6 +360,8 @@ class Grabber:
         self._thread: Optional[threading.Thread] = None
         self._next_id = 0
         self._front: Optional[Frame] = None
+        self._sim_base_s: Optional[float] = None   # monotonic time of a simulated flight's t = 0
+        self._last_stamp_s = -float("inf")
 
     def put_back(self, frame: Frame) -> None:
         """Hand ``frame`` out again at the next ``next`` (the caller looked at the first frame before the loop)."""
@@ -429,17 +437,38 @@ class Grabber:
             problem = reader.problem
             if problem:
                 log.warning("frame %d of %s is invalid: %s", self._next_id, self.config.camera, problem)
-            # A reader that knows when its image was taken (sim-follow: the pose's time) says so.
-            stamp_s = reader.capture_time_s if reader.capture_time_s is not None else time.monotonic()
-            frame = Frame(self._next_id, stamp_s, rgb, self.config.camera, valid=not problem, reason=problem)
+            stamp_s, lag_s = self._stamp(reader)
+            frame = Frame(self._next_id, stamp_s, rgb, self.config.camera, valid=not problem, reason=problem,
+                          clock_lag_s=lag_s)
             state = reader.last_state
             if state is not None and self.telemetry is not None:
-                self.telemetry.add_state(state, frame.capture_time_s)
+                # Sampled at the frame's (flight) time, arrived now: freshness stays on the monotonic clock.
+                self.telemetry.add_state(state, frame.capture_time_s, arrival_s=time.monotonic())
             self._publish(frame)
             self._next_id += 1
         with self._cond:
             self.ended = True
             self._cond.notify_all()
+
+    def _stamp(self, reader: Reader) -> tuple[float, float]:
+        """(capture time, clock lag) of the image just read (see Frame.clock_lag_s).
+
+        A reader that knows when its image was taken on this clock (sim-follow: the pose's time) says so. A
+        simulated or replayed flight gives its own time, mapped onto a monotonic base fixed at its first frame,
+        so that which frames geometry pairs and what the grids remember depend on the flight only, not on how
+        fast it rendered (with wall-clock stamps the default sim run's target count varied between runs). The
+        base moves forward only when the flight's time goes back (a replay restarting with --loop)."""
+        now = time.monotonic()
+        if reader.capture_time_s is not None:
+            return reader.capture_time_s, 0.0
+        sim_s = reader.sim_time_s
+        if sim_s is None or not math.isfinite(sim_s):
+            return now, 0.0
+        if self._sim_base_s is None or self._sim_base_s + sim_s <= self._last_stamp_s:
+            self._sim_base_s = max(now, self._last_stamp_s + 1e-3) - sim_s
+        stamp = self._sim_base_s + sim_s
+        self._last_stamp_s = stamp
+        return stamp, now - stamp
 
     def _reopen(self, backoff_s: float) -> bool:
         if self._stop.wait(backoff_s if self.config.kind.live else 0.0):

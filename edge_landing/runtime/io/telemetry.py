@@ -184,10 +184,12 @@ class TelemetryBuffer:
             return arrival_s
         return self._clock.map(remote_ms / 1000.0, arrival_s)
 
-    def _add(self, series: _Series, value: np.ndarray, remote_ms: Optional[float], arrival_s: Optional[float]) -> bool:
+    def _add(self, series: _Series, value: np.ndarray, remote_ms: Optional[float], arrival_s: Optional[float],
+             sample_s: Optional[float] = None) -> bool:
+        """``sample_s``: the sample's local time when the caller knows it (else mapped from ``remote_ms``)."""
         arrival = time.monotonic() if arrival_s is None else arrival_s
         with self._lock:
-            t = self.local_time(remote_ms, arrival)
+            t = self.local_time(remote_ms, arrival) if sample_s is None else sample_s
             if t is None:
                 self._rejected["sample stamped from the future"] += 1
                 return False
@@ -196,7 +198,7 @@ class TelemetryBuffer:
             return True
 
     def add_attitude(self, roll_rad: float, pitch_rad: float, yaw_rad: float, remote_ms: Optional[float] = None,
-                     arrival_s: Optional[float] = None) -> bool:
+                     arrival_s: Optional[float] = None, sample_s: Optional[float] = None) -> bool:
         c = self.config
         if not _finite(roll_rad, pitch_rad, yaw_rad):
             self.reject("attitude not finite")
@@ -207,17 +209,17 @@ class TelemetryBuffer:
         if abs(yaw_rad) > 2 * math.pi + 1e-3:
             self.reject("yaw out of range")
             return False
-        return self._add(self._attitude, np.array([roll_rad, pitch_rad, yaw_rad]), remote_ms, arrival_s)
+        return self._add(self._attitude, np.array([roll_rad, pitch_rad, yaw_rad]), remote_ms, arrival_s, sample_s)
 
     def add_position(self, north_m: float, east_m: float, down_m: float, remote_ms: Optional[float] = None,
-                     arrival_s: Optional[float] = None) -> bool:
+                     arrival_s: Optional[float] = None, sample_s: Optional[float] = None) -> bool:
         if not _finite(north_m, east_m, down_m) or max(abs(north_m), abs(east_m), abs(down_m)) > self.config.max_position_m:
             self.reject("local position not finite or too far")
             return False
-        return self._add(self._position, np.array([north_m, east_m, down_m]), remote_ms, arrival_s)
+        return self._add(self._position, np.array([north_m, east_m, down_m]), remote_ms, arrival_s, sample_s)
 
     def add_relative_alt(self, alt_m: float, remote_ms: Optional[float] = None,
-                         arrival_s: Optional[float] = None) -> bool:
+                         arrival_s: Optional[float] = None, sample_s: Optional[float] = None) -> bool:
         if not _finite(alt_m):
             self.reject("relative altitude not finite")
             return False
@@ -227,7 +229,7 @@ class TelemetryBuffer:
         if alt_m > self.config.max_agl_m:
             self.reject("height above ground beyond its maximum")
             return False
-        return self._add(self._rel_alt, np.array([alt_m]), remote_ms, arrival_s)
+        return self._add(self._rel_alt, np.array([alt_m]), remote_ms, arrival_s, sample_s)
 
     def add_rangefinder(self, distance_m: float, remote_ms: Optional[float] = None,
                         arrival_s: Optional[float] = None, min_m: float = 0.0, max_m: float = math.inf) -> bool:
@@ -239,15 +241,16 @@ class TelemetryBuffer:
             return False
         return self._add(self._range, np.array([distance_m]), remote_ms, arrival_s)
 
-    def add_state(self, state: VehicleState, local_time_s: float) -> None:
-        """A whole state known at a local time (a simulated camera's perfect telemetry)."""
-        a = state.attitude
-        self.add_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad, arrival_s=local_time_s)
+    def add_state(self, state: VehicleState, local_time_s: float, arrival_s: Optional[float] = None) -> None:
+        """A whole state sampled at a local time (a simulated camera's perfect telemetry), arrived at
+        ``arrival_s`` (default: the sample time). Freshness counts from the arrival."""
+        a, arrival = state.attitude, local_time_s if arrival_s is None else arrival_s
+        self.add_attitude(a.roll_rad, a.pitch_rad, a.yaw_rad, arrival_s=arrival, sample_s=local_time_s)
         if state.position_ned_m is not None:
             n, e, d = (float(v) for v in state.position_ned_m)
-            self.add_position(n, e, d, arrival_s=local_time_s)
+            self.add_position(n, e, d, arrival_s=arrival, sample_s=local_time_s)
         if state.agl_m is not None:
-            self.add_relative_alt(float(state.agl_m), arrival_s=local_time_s)
+            self.add_relative_alt(float(state.agl_m), arrival_s=arrival, sample_s=local_time_s)
 
     def forget(self) -> None:
         """Drop every sample (the autopilot changed or rebooted)."""

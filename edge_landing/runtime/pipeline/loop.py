@@ -185,7 +185,8 @@ class Pipeline:
         if state is not None and not self.options.world_grid:
             fusion_state = replace(state, position_ned_m=None)
         try:
-            result = self.fuse(pred, fusion_state, time.monotonic(), frame.rgb)  # image: motion geometry
+            # "now" on the frame's clock (a simulated flight's frames count their age from the hand-over)
+            result = self.fuse(pred, fusion_state, time.monotonic() - frame.clock_lag_s, frame.rgb)
         except Exception as exc:  # a fusion bug must not stop the drone's loop: no target, and why
             log.exception("fusion failed on frame %d", frame.frame_id)
             result = FusionResult(Target.none(frame.frame_id, frame.capture_time_s, f"fusion fault: {exc}"))
@@ -218,9 +219,9 @@ class Pipeline:
                 self.link.send_status(said[:50], severity=4)
             target = self._recheck(target)
             target, pose_time_s = self._at_newest_pose(target)
-            sent, why = self.link.send_target(target, match.state)
+            sent, why = self.link.send_target(target, match.state, clock_lag_s=frame.clock_lag_s)
             if sent:
-                now = time.monotonic()
+                now = time.monotonic() - frame.clock_lag_s   # on the frame's clock (Frame.clock_lag_s)
                 s.times.add("capture_to_send", now - frame.capture_time_s)
                 s.times.add("pose_to_send", now - pose_time_s)
             self._statustext(target)
