@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from edge_landing.runtime.core.camera import Intrinsics, Mount
+from edge_landing.runtime.fusion.baseline import detectable_heights_m, window_probes
 from edge_landing.runtime.fusion.image_motion import ImagePose, estimate_translation, plane_prediction_sigma
 from edge_landing.runtime.fusion.motion_config import (
     POSE_IMAGE,
@@ -38,7 +39,6 @@ from edge_landing.runtime.fusion.parallax import (
     ned_points,
     parallax_height,
     plane_homography,
-    row_nanmedian,
 )
 
 __all__ = ["POSE_IMAGE", "POSE_TELEMETRY", "CameraPose", "DisPreset", "MotionConfig", "MotionStage", "ParallaxResult",
@@ -294,40 +294,9 @@ class MotionStage:
             self.last_reason = "no earlier frame yet"
             return None, math.inf
         cfg = self.config
-        h, w = self.size_hw
-        rs, cs = window
-        uu, vv = np.meshgrid(np.linspace(cs.start + 0.1 * (cs.stop - cs.start), cs.stop - 1, 5),
-                             np.linspace(rs.start + 0.1 * (rs.stop - rs.start), rs.stop - 1, 4))
-        probes = np.vstack([uu.ravel(), vv.ravel()])
-        k_inv = self._k_inv
-        xc = (k_inv @ np.vstack([probes, np.ones(probes.shape[1])]))
         items = list(self._history)
-        r_ref = np.stack([it.pose.r_nc for it in items])                        # M×3×3 NED <- ref camera
-        p_ref = np.stack([it.pose.position_ned_m for it in items])              # M×3
-        rot = np.einsum("mji,jk->mik", r_ref, pose.r_nc)                        # R_r^T R_c
-        t = np.einsum("mji,mj->mi", r_ref, pose.position_ned_m[None] - p_ref)   # R_r^T (p_c - p_r)
-        n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
-        d = pose.agl_m
-        q = np.einsum("mij,jk->mik", rot + t[:, :, None] * n[None, None, :] / d, xc)   # M×3×K, H_e x_c
-        nx = n @ xc                                                             # K
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xr = q[:, :2] / q[:, 2:3]
-            ur = self.k_cv[0, 0] * xr[:, 0] + self.k_cv[0, 2]
-            vr = self.k_cv[1, 1] * xr[:, 1] + self.k_cv[1, 2]
-            inside = (q[:, 2] > 0) & (nx > 0)[None] & (ur >= 8) & (ur <= w - 9) & (vr >= 8) & (vr <= h - 9)
-            z0 = d / nx[None] * q[:, 2]
-            g = (t[:, :2, None] - xr * t[:, 2:3, None]) / z0[:, None]
-            gnorm = np.where(inside, np.hypot(g[:, 0], g[:, 1]), np.nan)
-            f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
-            det = cfg.detect_sigmas * d * (cfg.flow_noise_px / f) / row_nanmedian(
-                np.where(inside.any(axis=1, keepdims=True), gnorm, 0.0))
-        # The noise-floor model above favours the longest baseline, but past about half the range to the ground
-        # the two views differ too much (anything off the plane, occlusions) and the flow fails: measured noise
-        # went from ~0.2 px to 1-6 px, the detectable height from ~0.5 m to 2-8 m (docs/ARCHITECTURE.md §11).
-        with np.errstate(invalid="ignore"):
-            rng = np.nanmedian(np.where(nx > 0, d / nx, np.nan) * np.sqrt(1.0 + xc[0] ** 2 + xc[1] ** 2))
-        short = np.linalg.norm(t, axis=1) <= cfg.max_baseline_ratio * rng if math.isfinite(rng) else True
-        det = np.where((inside.mean(axis=1) >= cfg.min_overlap) & np.isfinite(det) & short, det, np.inf)
+        det = detectable_heights_m(pose, [it.pose for it in items], window_probes(window), self.k_cv, self._k_inv,
+                                   self.size_hw, cfg)
         if not np.isfinite(det).any():
             self.last_reason = "no keyframe with a usable baseline overlaps the current view (hovering?)"
             return None, math.inf
