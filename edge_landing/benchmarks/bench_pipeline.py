@@ -42,6 +42,7 @@ from edge_landing.runtime.pipeline import (
     PipelineOptions,
     ScaleStage,
 )
+from edge_landing.runtime.pipeline.threads import limit_side_threads
 
 MODES = ("model-only", "pipeline-overlap", "pipeline-sequential", "pipeline-rate")
 
@@ -61,6 +62,7 @@ class BenchConfig:
     out: Optional[str] = None
     fusion_hz: float = 15.0   # the pipeline-rate mode fuses at most this often (edge-run --fusion-hz)
     runtime: Runtime = Runtime.ONNXRUNTIME   # the runtime that runs the given file(s) (edge-run --runtime)
+    limit_side_threads: bool = True   # OpenCV and BLAS at 1 thread each, as edge-run sets them
 
 
 class MemoryReader(Reader):
@@ -140,6 +142,8 @@ def bench(cfg: BenchConfig) -> dict:
 
     from edge_landing.runtime.models import default_model_path
 
+    if cfg.limit_side_threads:
+        limit_side_threads()
     inference: PairInference | JointInference
     session = SessionConfig(threads=cfg.threads, runtime=cfg.runtime)
     if cfg.depth_model and cfg.hvo_model:
@@ -204,7 +208,8 @@ def _drain(sock: socket.socket) -> None:
 def report(result: dict) -> str:
     lines = [f"model {result['model']} | {result['frames']} frames {result['frame_size'][1]}x{result['frame_size'][0]} "
              f"| input {result['model_input'][1]}x{result['model_input'][0]} | {result['config']['threads']} threads "
-             f"| {result['config']['runtime']}",
+             f"| {result['config']['runtime']} | OpenCV/BLAS threads "
+             f"{'1/1 (as edge-run)' if result['config']['limit_side_threads'] else 'library defaults'}",
              "| mode | images/s | target updates/s | p50 ms | p90 ms | p99 ms | CPU ms/frame | vs model-only |",
              "|---|---|---|---|---|---|---|---|"]
     for mode, r in result["modes"].items():
@@ -230,6 +235,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--fusion-hz", type=float, default=15.0, help="the pipeline-rate mode's fusion cap")
     p.add_argument("--runtime", default="onnxruntime", help="onnxruntime (default) or openvino: what runs the file(s)")
+    p.add_argument("--library-thread-defaults", action="store_true",
+                   help="leave OpenCV's and BLAS's own thread pools as they come (edge-run caps both at 1)")
     p.add_argument("--out", help="write the result as JSON")
     a = p.parse_args(argv)
     try:
@@ -243,7 +250,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     if bool(a.depth_model) != bool(a.hvo_model):
         raise InputError("--depth-model and --hvo-model go together")
     cfg = BenchConfig(a.model, a.camera, a.depth_model, a.hvo_model, a.frames, w, h, a.threads, a.rounds, out=a.out,
-                      fusion_hz=a.fusion_hz, runtime=Runtime.from_string(a.runtime))
+                      fusion_hz=a.fusion_hz, runtime=Runtime.from_string(a.runtime),
+                      limit_side_threads=not a.library_thread_defaults)
     result = bench(cfg)
     print(report(result))
     if cfg.out:

@@ -268,7 +268,9 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
         AltitudeScaleEstimator,
         load_calibration,
     )
+    from edge_landing.runtime.pipeline.threads import limit_side_threads
 
+    limit_side_threads()
     inference = load_inference(cfg, out)
     calibration = load_calibration(cfg.calibration, inference.models[0].sha256) if cfg.calibration else None
     src = SourceConfig(camera=cfg.camera, kind=SourceKind.from_string(cfg.camera), width=cfg.camera_width,
