@@ -34,6 +34,7 @@ from edge_landing.runtime.fusion.motion_config import (
 )
 from edge_landing.runtime.fusion.parallax import (
     CameraPose,
+    column_seen,
     fit_ground,
     ground_surface,
     ned_points,
@@ -385,6 +386,9 @@ class MotionStage:
         rng = np.sqrt((ned[0] - pose.position_ned_m[0]) ** 2 + (ned[1] - pose.position_ned_m[1]) ** 2
                       + (ned[2] - pose.position_ned_m[2]) ** 2)
         resolved = patch_px * rng / f <= cfg.max_patch_footprint_m
+        if cfg.overhang_check_m > 0:   # ground seen under a crown or eaves cannot confirm
+            resolved &= column_seen(pose, self.k_cv, (cs.start, rs.start), xc.reshape((2,) + shape), ned, reliable,
+                                    cfg.overhang_check_m)
         detectable = np.where(reliable & resolved, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
         out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
         baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))

@@ -66,6 +66,9 @@ class MotionConfig:
     max_sigma_h_m: float = 1.0           # pixels noisier than this are left out of the terrain fit
     min_agl_m: float = 2.0               # below this the plane model is not used
     max_plane_noise_px: float = 0.6      # a pair noisier than this does not update the ground plane's level
+    # An oblique view sees ground under tree crowns and eaves: a pixel confirms only where the air above its
+    # ground point, up to this height, was seen empty in the same window (parallax.column_seen; 0: off).
+    overhang_check_m: float = 8.0
     image_pose: ImagePoseConfig = ImagePoseConfig()   # the fallback when telemetry has no position
 
     def __post_init__(self) -> None:
@@ -79,6 +82,8 @@ class MotionConfig:
                      "focus_preference"):
             if not getattr(self, name) > 0:
                 raise InputError(f"motion {name} must be > 0, got {getattr(self, name)}")
+        if not self.overhang_check_m >= 0:
+            raise InputError(f"motion overhang_check_m must be >= 0, got {self.overhang_check_m}")
         if self.max_frames < 2:
             raise InputError(f"motion max_frames must be at least 2, got {self.max_frames}")
         if not 0 < self.min_overlap <= 1:

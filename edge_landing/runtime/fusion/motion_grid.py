@@ -6,11 +6,17 @@ line up cell for cell. Per cell, from each frame pair (motion.ParallaxResult):
   pixel of the cell: every part of the cell must have been measurable);
 - whether some pixel stood out: |height| >= half the obstacle height and >= ``detect_sigmas`` σ ("high";
   drops count too: a site must be flat).
-Across frames: ``clear_t`` is the last time a frame found the cell measurable to the obstacle height and
-not high; ``seen_w`` / ``high_w`` are weights of frames that measured it / found it high, decaying with
-``memory_s``. A cell is *geometry-clear* while ``now - clear_t <= memory_s`` and it is not an obstacle;
-an *obstacle* when ``high_w >= obstacle_vote_share · seen_w`` (flow has heavy tails: one odd frame out
-of many does not make an obstacle; a real one is high in most frames that could see it).
+Across frames: the cell's mean height in each frame is fused by inverse variance (σ = the worst pixel's,
+weights decaying with ``memory_s``): sensor noise and rain differ from frame to frame, so pairs that each
+detect 0.7-1.5 m together detect less (measured on noisy flights: flow noise 0.3-0.8 px against 0.2 px,
+so single pairs at 60 m rarely reached 0.5 m). Pairs share keyframes and DIS's texture errors, so the
+credit is capped: the fused detectable height is at least the best single pair's / ``max_fusion_gain``.
+``clear_t`` is the last time a frame measured the cell, found it not high, and the fused evidence was
+measurable to the obstacle height and not high; ``seen_w`` / ``high_w`` are weights of frames that
+measured it / found it high. A cell is *geometry-clear* while ``now - clear_t <= memory_s`` and it is not
+an obstacle; an *obstacle* when ``high_w >= obstacle_vote_share · seen_w`` (flow has heavy tails: one
+odd frame out of many does not make an obstacle; a real one is high in most frames that could see it),
+or when its fused height stands out (half the obstacle height and ``detect_sigmas`` fused σ).
 Pure numpy/OpenCV; memory is the grid itself (bounded) and timestamps (bounded in time by construction).
 """
 from __future__ import annotations
@@ -31,8 +37,8 @@ class GeometryView:
     """Geometry evidence on a window of cells (rows north, columns east), as of ``time_s``.
 
     ``clear``: confirmed clear of obstacles of ``obstacle_height_m``; ``obstacle``: something at least that
-    tall was seen; ``detectable_m``: the smallest height detectable there within the memory (inf: never
-    measured); ``baseline_m``: the baseline of the frame that last confirmed the cell (NaN: never);
+    tall was seen; ``detectable_m``: the smallest height detectable there with the evidence fused within the
+    memory (inf: never measured); ``baseline_m``: the baseline of the frame that last confirmed the cell (NaN: never);
     ``clear_age_s``: time since that confirmation (inf: never).
     """
 
@@ -50,7 +56,7 @@ class GeometryGrid:
 
     def __init__(self, cell_m: float, radius_m: float, memory_s: float, obstacle_height_m: float,
                  detect_sigmas: float = 3.0, obstacle_vote_share: float = 0.3, max_unexplained_share: float = 0.1,
-                 grow_m: float = 1.0, min_high_share: float = 0.25):
+                 grow_m: float = 1.0, min_high_share: float = 0.25, max_fusion_gain: float = 2.0):
         self.cell_m = float(cell_m)
         self.size = max(3, int(math.ceil(2.0 * radius_m / cell_m)))
         self.memory_s = float(memory_s)
@@ -60,6 +66,7 @@ class GeometryGrid:
         self.max_unexplained_share = float(max_unexplained_share)
         self.grow_m = float(grow_m)
         self.min_high_share = float(min_high_share)
+        self.max_fusion_gain = max(1.0, float(max_fusion_gain))
         # A pixel covers up to a few cells on the ground at range, and flow smears an obstacle's edge into the
         # ground around it (its top is placed at a height read low): obstacles are grown by ``grow_m`` after
         # the vote (growing each frame's outliers before it made most open ground an "obstacle").
@@ -77,6 +84,7 @@ class GeometryGrid:
         self._clear_t = np.full((s, s), -np.inf)                 # last frame that confirmed the cell
         self._clear_base = np.full((s, s), np.nan, np.float32)   # that frame's baseline
         self._w = np.zeros((2, s, s), np.float32)                # decayed weights: seen, high
+        self._fused = np.zeros((2, s, s), np.float32)            # decayed Σ 1/σ², Σ h/σ² of the cell's heights
         self._time_s = None
 
     def centre_on(self, north_m: float, east_m: float) -> None:
@@ -89,6 +97,7 @@ class GeometryGrid:
             self._clear_t = _shift(self._clear_t, dr, dc, -np.inf)
             self._clear_base = _shift(self._clear_base, dr, dc, np.nan)
             self._w = np.stack([_shift(w, dr, dc, 0.0) for w in self._w])
+            self._fused = np.stack([_shift(w, dr, dc, 0.0) for w in self._fused])
 
     def add(self, result: ParallaxResult) -> int:
         """Merge one frame's evidence; returns the number of cells it measured."""
@@ -97,12 +106,14 @@ class GeometryGrid:
             if t < self._time_s:            # time went backwards: nothing older can be trusted
                 self.clear()
             else:
-                self._w *= np.float32(math.exp(-(t - self._time_s) / self.memory_s))
+                decay = np.float32(math.exp(-(t - self._time_s) / self.memory_s))
+                self._w *= decay
+                self._fused *= decay
         self._time_s = t
         frame = self._frame_cells(result)
         if frame is None:
             return 0
-        r0, c0, det, high, suspect = frame
+        r0, c0, det, high, suspect, mean_h = frame
         win = (slice(r0, r0 + det.shape[0]), slice(c0, c0 + det.shape[1]))
         measured = np.isfinite(det)
         best = self._det[win]
@@ -110,7 +121,13 @@ class GeometryGrid:
         better = measured & ((det <= best) | expired)
         best[better] = det[better]
         self._det_t[win][better] = t
-        confirm = measured & (det <= self.obstacle_height_m) & ~high & ~suspect
+        usable = measured & (det > 0) & np.isfinite(mean_h)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = np.where(usable, (self.detect_sigmas / det) ** 2, 0.0).astype(np.float32)
+        self._fused[0][win] += w
+        self._fused[1][win] += w * np.where(usable, mean_h, 0.0).astype(np.float32)
+        fused_det, fused_high = self._fused_evidence(self._fused[:, win[0], win[1]], best)
+        confirm = measured & (fused_det <= self.obstacle_height_m) & ~fused_high & ~high & ~suspect
         self._clear_t[win][confirm] = t
         self._clear_t[win][(high | suspect) & ~confirm] = -np.inf
         self._clear_base[win][confirm] = np.float32(result.baseline_m)
@@ -118,8 +135,20 @@ class GeometryGrid:
         self._w[1][win] += high
         return int(measured.sum())
 
-    def _frame_cells(self, result: ParallaxResult) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
-        """(row0, col0, detectable, high, suspect per cell) on the bounding box of this frame's cells."""
+    def _fused_evidence(self, fused: np.ndarray, best_det: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(detectable height, stands out) of the inverse-variance fused heights (2×H×W sums), the credit for
+        fusing capped at ``max_fusion_gain`` below the best single pair's detectable height ``best_det``."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            det = np.where(fused[0] > 0, self.detect_sigmas / np.sqrt(fused[0]), np.inf)
+            det = np.maximum(det, best_det / self.max_fusion_gain).astype(np.float32)
+            dev = np.abs(np.where(fused[0] > 0, fused[1] / fused[0], 0.0))
+            high = np.isfinite(det) & (dev >= 0.5 * self.obstacle_height_m) & (dev >= det)
+        return det, high
+
+    def _frame_cells(self, result: ParallaxResult
+                     ) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """(row0, col0, detectable, high, suspect, mean height per cell) on the bounding box of this frame's
+        cells."""
         ned = result.ned_m
         ok = np.isfinite(ned[0])
         if not ok.any():
@@ -167,7 +196,9 @@ class GeometryGrid:
         det_c = np.where(measured, worst, np.inf).astype(np.float32).reshape(rows, cols)
         det_c = _fill_holes(det_c, (np.bincount(idx, minlength=n) == 0).reshape(rows, cols))  # no pixel at all
         suspect = cv2.dilate(suspect.view(np.uint8), self._grow).astype(bool)
-        return r0, c0, det_c, high, suspect
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_h = (np.bincount(idx[measured_px], weights=hgt[measured_px], minlength=n) / n_rel).reshape(rows, cols)
+        return r0, c0, det_c, high, suspect, mean_h
 
     def view(self, north0_m: float, east0_m: float, shape: tuple[int, int], now_s: float) -> GeometryView:
         """The evidence on a window of cells whose corner is (north0, east0) (cells outside: no evidence)."""
@@ -186,12 +217,13 @@ class GeometryGrid:
         decay = 1.0 if self._time_s is None else math.exp(-max(now_s - self._time_s, 0.0) / self.memory_s)
         seen = take(self._w[0], np.float32(0.0)) * decay
         high_w = take(self._w[1], np.float32(0.0)) * decay
-        obstacle = (high_w > 0) & (high_w >= self.obstacle_vote_share * seen)
+        det = take(self._det, np.float32(np.inf))
+        det = np.where(now_s - take(self._det_t, -np.inf) <= self.memory_s, det, np.inf).astype(np.float32)
+        det, fused_high = self._fused_evidence(np.stack([take(f, np.float32(0.0)) for f in self._fused]), det)
+        obstacle = ((high_w > 0) & (high_w >= self.obstacle_vote_share * seen)) | fused_high
         obstacle = cv2.dilate(obstacle.view(np.uint8), self._grow).astype(bool)
         age = now_s - take(self._clear_t, -np.inf)
         clear = (age <= self.memory_s) & ~obstacle
-        det = take(self._det, np.float32(np.inf))
-        det = np.where(now_s - take(self._det_t, -np.inf) <= self.memory_s, det, np.inf).astype(np.float32)
         return GeometryView(now_s, self.obstacle_height_m, clear, obstacle, det,
                             take(self._clear_base, np.float32(np.nan)), np.where(np.isfinite(age), age, np.inf))
 

@@ -145,3 +145,39 @@ def ground_surface(coef: np.ndarray, ned: np.ndarray, here: np.ndarray) -> np.nd
     out: np.ndarray = coef[0] + coef[1] * dn + coef[2] * de + coef[3] * dn * dn + coef[4] * dn * de \
         + coef[5] * de * de
     return out
+
+
+def column_seen(pose: CameraPose, k_cv: np.ndarray, origin_uv: tuple[int, int], xc: np.ndarray, ned: np.ndarray,
+                measured: np.ndarray, column_m: float, samples: int = 4) -> np.ndarray:
+    """Per window pixel: was the air above its ground point seen empty, up to ``column_m``?
+
+    An oblique camera sees ground under an overhang (a tree crown, eaves) that a vertical descent would hit.
+    The rays between a pixel and the image of the point ``column_m`` above its ground point pass over that
+    point; where they reach ground beyond it (at least half as far beyond as the plane predicts), the air they
+    crossed was empty. A pixel whose column leaves the window, or crosses pixels that were not measured or that
+    stopped short (something above the point), is not seen. ``xc``: normalised coordinates (2×H×W), ``ned``:
+    the pixels' NED points at their measured heights (3×H×W), ``measured``: H×W, ``origin_uv``: the window's
+    corner (column, row) in the frame. Pure numpy.
+    """
+    h, w = measured.shape
+    c = pose.position_ned_m
+    r = pose.r_nc
+    dirs = np.einsum("ij,jhw->ihw", r, np.stack([xc[0], xc[1], np.ones_like(xc[0])]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        plane_m = np.where(dirs[2] > 0, pose.agl_m * np.hypot(dirs[0], dirs[1]) / dirs[2], np.nan)
+        range_m = np.where(measured, np.hypot(ned[0] - c[0], ned[1] - c[1]), np.nan)
+        top = np.einsum("ji,jhw->ihw", r, ned - (c + np.array([0.0, 0.0, column_m]))[:, None, None])
+        u_top = k_cv[0, 0] * top[0] / top[2] + k_cv[0, 2] - origin_uv[0]
+        v_top = k_cv[1, 1] * top[1] / top[2] + k_cv[1, 2] - origin_uv[1]
+    yy, xx = np.mgrid[0:h, 0:w]
+    seen = measured & (top[2] > 0) & np.isfinite(u_top) & np.isfinite(v_top)
+    for s in np.linspace(1.0 / samples, 1.0, samples):
+        uq = np.rint(xx + s * np.where(seen, u_top - xx, 0.0)).astype(np.int64)
+        vq = np.rint(yy + s * np.where(seen, v_top - yy, 0.0)).astype(np.int64)
+        inside = (uq >= 0) & (uq < w) & (vq >= 0) & (vq < h)
+        uq, vq = np.clip(uq, 0, w - 1), np.clip(vq, 0, h - 1)
+        with np.errstate(invalid="ignore"):
+            beyond = range_m[vq, uq] - range_m >= 0.5 * (plane_m[vq, uq] - plane_m)
+        seen &= inside & beyond
+    out: np.ndarray = seen
+    return out
