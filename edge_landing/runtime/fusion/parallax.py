@@ -148,14 +148,15 @@ def ground_surface(coef: np.ndarray, ned: np.ndarray, here: np.ndarray) -> np.nd
 
 
 def column_seen(pose: CameraPose, k_cv: np.ndarray, origin_uv: tuple[int, int], xc: np.ndarray, ned: np.ndarray,
-                measured: np.ndarray, column_m: float, samples: int = 4) -> np.ndarray:
+                measured: np.ndarray, column_m: float, samples: int = 4, beyond_m: float = 1.0) -> np.ndarray:
     """Per window pixel: was the air above its ground point seen empty, up to ``column_m``?
 
     An oblique camera sees ground under an overhang (a tree crown, eaves) that a vertical descent would hit.
     The rays between a pixel and the image of the point ``column_m`` above its ground point pass over that
-    point; where they reach ground beyond it (at least half as far beyond as the plane predicts), the air they
-    crossed was empty. A pixel whose column leaves the window, or crosses pixels that were not measured or that
-    stopped short (something above the point), is not seen. ``xc``: normalised coordinates (2×H×W), ``ned``:
+    point; where they end beyond it (``beyond_m``, or half as far beyond as the plane predicts when that is
+    less: on a wall or a car behind the point, or on the ground), the air they crossed above the point was
+    empty. A pixel whose column leaves the window, or crosses pixels that were not measured or that stopped
+    short (at something above the point: the underside or the side of a crown), is not seen. ``xc``: normalised coordinates (2×H×W), ``ned``:
     the pixels' NED points at their measured heights (3×H×W), ``measured``: H×W, ``origin_uv``: the window's
     corner (column, row) in the frame. Pure numpy.
     """
@@ -177,7 +178,7 @@ def column_seen(pose: CameraPose, k_cv: np.ndarray, origin_uv: tuple[int, int], 
         inside = (uq >= 0) & (uq < w) & (vq >= 0) & (vq < h)
         uq, vq = np.clip(uq, 0, w - 1), np.clip(vq, 0, h - 1)
         with np.errstate(invalid="ignore"):
-            beyond = range_m[vq, uq] - range_m >= 0.5 * (plane_m[vq, uq] - plane_m)
-        seen &= inside & beyond
+            short = range_m[vq, uq] - range_m < np.minimum(0.5 * (plane_m[vq, uq] - plane_m), beyond_m)
+        seen &= inside & ~(measured[vq, uq] & short)
     out: np.ndarray = seen
     return out
