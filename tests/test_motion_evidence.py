@@ -114,3 +114,59 @@ def test_the_stage_runs_every_geometry_interval():
         ran.append("runs every" not in (target.reason + target.evidence))
     assert ran == [True, False] * 4
     assert math.isclose(FusionConfig().geometry_interval_s, 0.2)
+
+
+def test_fused_pairs_confirm_what_no_single_pair_could_and_show_what_none_saw():
+    """Noisy pairs (each detecting 0.8 m) together detect 0.4 m (the gain capped at 2): flat ground gets
+    confirmed after a few frames, and a 0.4 m step that no single pair could see stands out as an obstacle."""
+    shape = (20, 20)
+    none = np.zeros(shape, bool)
+    rng = np.random.default_rng(3)
+    flat, step = _grid(), _grid()
+    for k in range(6):
+        noise = rng.normal(0.0, 0.05, shape)
+        flat.add(_result(noise, np.full(shape, 0.8), none, 0.2 * k, sigma=0.8 / 3))
+        step.add(_result(0.4 + noise, np.full(shape, 0.8), none, 0.2 * k, sigma=0.8 / 3))
+        if k == 0:    # one pair alone: measured to 0.8 m, neither confirmed nor an obstacle
+            view = flat.view(flat.north0_m, flat.east0_m, (flat.size, flat.size), 0.0)
+            assert not view.clear[_cell(flat, 7.6, 7.6)]
+    cell = _cell(flat, 7.6, 7.6)
+    view = flat.view(flat.north0_m, flat.east0_m, (flat.size, flat.size), 1.0)
+    assert view.clear[cell] and not view.obstacle[cell]
+    assert float(view.detectable_m[cell]) == pytest.approx(0.4, abs=1e-3)     # capped: 0.8 / 2, not 0.8 / √6
+    view = step.view(step.north0_m, step.east0_m, (step.size, step.size), 1.0)
+    assert view.obstacle[cell] and not view.clear[cell]
+
+
+def test_ground_seen_under_an_overhang_is_not_seen_from_above():
+    """A crown 3-7 m above the ground 2 m around a point: the camera sees the ground under its near edge, but
+    the rays that would pass over that point end on the crown, so the point cannot confirm; open ground whose
+    column stays in the window can, the top rows (their column leaves the window) cannot."""
+    from edge_landing.runtime.fusion.parallax import column_seen, ned_points
+
+    n_px = 96
+    k = np.array([[n_px, 0.0, (n_px - 1) / 2], [0.0, n_px, (n_px - 1) / 2], [0.0, 0.0, 1.0]])
+    pose = CameraPose.of(Mount(pitch_rad=-math.pi / 4), Attitude(), np.array([0.0, 0.0, -20.0]), 20.0)
+    yy, xx = np.mgrid[0:n_px, 0:n_px].astype(np.float64)
+    xc = np.stack([(xx - k[0, 2]) / n_px, (yy - k[1, 2]) / n_px])
+    ground, _ = ned_points(pose, xc.reshape(2, -1), np.ones(n_px * n_px))
+    ground = ground.reshape(3, n_px, n_px)
+    measured = np.ones((n_px, n_px), bool)
+    open_seen = column_seen(pose, k, (0, 0), xc, ground, measured, 8.0)
+    # Bottom middle: the column (tilted towards the nadir's vanishing point) stays in the window.
+    assert open_seen[-1, 24:72].all() and not open_seen[0].any()
+    target = ground[:, 70, 48]                           # a ground point low in the image
+    # The crown: 3-7 m up within 2 m of the target, in 0.5 m layers; a ray ends in the highest layer it meets
+    # (rays descend away from the camera).
+    ned = ground.copy()
+    rays = ground - pose.position_ned_m[:, None, None]
+    for up_m in np.arange(3.0, 7.01, 0.5):
+        lam = (target[2] - up_m - pose.position_ned_m[2]) / rays[2]
+        hit = pose.position_ned_m[:, None, None] + lam * rays
+        under = (lam < 1.0) & (np.hypot(hit[0] - target[0], hit[1] - target[1]) <= 2.0)
+        ned = np.where(under[None], hit, ned)
+    seen = column_seen(pose, k, (0, 0), xc, ned, measured, 8.0)
+    # The ground under the crown that the camera sees from the side (its own ray misses the crown).
+    below = np.all(ned == ground, axis=0) & (np.hypot(ground[0] - target[0], ground[1] - target[1]) <= 1.9)
+    assert below.sum() >= 10 and open_seen[below].all() and not seen[below].any()
+    assert seen[88, 24] and seen[-1, 48]                 # beside the crown, and in front of it

@@ -2,15 +2,13 @@
 
 Between the current frame (c) and an earlier one (r) with known poses, points of the ground plane map by the
 plane-induced homography; a point ``h`` above the plane is displaced from that prediction along the
-epipolar direction. Frames: camera = OpenCV (x right, y down, z forward), world = local NED.
-
-The plane-plus-parallax algebra (derivation, terrain fit) is in fusion.parallax.
-
-Flow: the reference image is first warped by the plane homography into the current view, so the flow
-DIS has to find is only the residual parallax (small for the ground even with tens of metres of
-baseline). The height of the ground itself is the terrain (slopes of a few degrees read as metres at
-100 m): a smooth quadratic surface is fitted robustly to the heights and removed, so ``h`` is the height
-above the *local* ground. Pure numpy/OpenCV, no I/O; memory is bounded in time (``history_s``) and count.
+epipolar direction. Frames: camera = OpenCV (x right, y down, z forward), world = local NED. The
+plane-plus-parallax algebra (derivation, terrain fit, the overhang check) is in fusion.parallax.
+Flow: the reference image is first warped by the plane homography into the current view, so the flow DIS
+has to find is only the residual parallax (small for the ground even with tens of metres of baseline). The
+height of the ground itself is the terrain (slopes of a few degrees read as metres at 100 m): a smooth
+quadratic surface is fitted robustly to the heights and removed, so ``h`` is the height above the *local*
+ground. Pure numpy/OpenCV, no I/O; memory is bounded in time (``history_s``) and count.
 """
 from __future__ import annotations
 

@@ -127,7 +127,11 @@ class GeometryGrid:
         self._fused[0][win] += w
         self._fused[1][win] += w * np.where(usable, mean_h, 0.0).astype(np.float32)
         fused_det, fused_high = self._fused_evidence(self._fused[:, win[0], win[1]], best)
-        confirm = measured & (fused_det <= self.obstacle_height_m) & ~fused_high & ~high & ~suspect
+        # The fused credit only where no frame within the memory found the cell high: a thin wall or pole that
+        # DIS smooths to a tenth of its height stands out in few frames (1 of 8 on suburban 6262, too few for
+        # the vote) and must not be confirmed by averaging the frames that missed it.
+        credit = (fused_det <= self.obstacle_height_m) & (self._w[1][win] < 0.5)
+        confirm = measured & ((det <= self.obstacle_height_m) | credit) & ~fused_high & ~high & ~suspect
         self._clear_t[win][confirm] = t
         self._clear_t[win][(high | suspect) & ~confirm] = -np.inf
         self._clear_base[win][confirm] = np.float32(result.baseline_m)

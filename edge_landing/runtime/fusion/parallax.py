@@ -154,11 +154,12 @@ def column_seen(pose: CameraPose, k_cv: np.ndarray, origin_uv: tuple[int, int], 
     An oblique camera sees ground under an overhang (a tree crown, eaves) that a vertical descent would hit.
     The rays between a pixel and the image of the point ``column_m`` above its ground point pass over that
     point; where they end beyond it (``beyond_m``, or half as far beyond as the plane predicts when that is
-    less: on a wall or a car behind the point, or on the ground), the air they crossed above the point was
-    empty. A pixel whose column leaves the window, or crosses pixels that were not measured or that stopped
-    short (at something above the point: the underside or the side of a crown), is not seen. ``xc``: normalised coordinates (2×H×W), ``ned``:
-    the pixels' NED points at their measured heights (3×H×W), ``measured``: H×W, ``origin_uv``: the window's
-    corner (column, row) in the frame. Pure numpy.
+    less: on a wall or a car behind the point, or on the ground), the air they crossed above it was empty.
+    A pixel is not seen when its column leaves the window, or when one of ``samples`` rays on it was measured
+    ending short (at something above the point: the side or underside of a crown); unmeasured pixels on the
+    column are no evidence either way. ``xc``: normalised coordinates (2×H×W); ``ned``: the pixels' NED
+    points at their measured heights (3×H×W); ``measured``: H×W; ``origin_uv``: the window's corner (column,
+    row) in the frame. Pure numpy.
     """
     h, w = measured.shape
     c = pose.position_ned_m
