@@ -381,8 +381,7 @@ class MotionStage:
             sigma0 = np.hypot(sigma0, sigma_pose) * margin
         height = np.where(reliable, local, np.nan).astype(np.float32)
         patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)
-        rng = np.sqrt((ned[0] - pose.position_ned_m[0]) ** 2 + (ned[1] - pose.position_ned_m[1]) ** 2
-                      + (ned[2] - pose.position_ned_m[2]) ** 2)
+        rng = np.sqrt(np.sum((ned - pose.position_ned_m[:, None, None]) ** 2, axis=0))
         resolved = patch_px * rng / f <= cfg.max_patch_footprint_m
         if cfg.overhang_check_m > 0:   # ground seen under a crown or eaves cannot confirm
             resolved &= column_seen(pose, self.k_cv, (cs.start, rs.start), xc.reshape((2,) + shape), ned, reliable,
