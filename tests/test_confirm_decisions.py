@@ -84,3 +84,24 @@ def test_geometry_confirms_ground_the_network_calls_horizontal_but_not_flat_and_
                 assert not fuser.grid.landable.any() or not target.valid
     assert valid["horizontal"] > 10, valid     # geometry measured the grass: the network's noise does not veto it
     assert valid["strict"] == 0 and valid["vertical"] == 0, valid
+
+
+def test_focus_candidates_take_the_best_spots_that_are_far_enough_apart():
+    from edge_landing.runtime.fusion.confirm import focus_candidates
+    from edge_landing.runtime.fusion.grid import GridView
+
+    config = FusionConfig()
+    ok = config.required_clearance_m + 0.5
+    clearance = np.zeros((40, 40), np.float32)
+    for (row, col), extra in {(5, 5): 2.0, (7, 5): 2.0, (30, 5): 0.0, (5, 30): 0.5}.items():
+        clearance[row, col] = ok + extra
+    sums = np.zeros((5, 40, 40))
+    sums[0], sums[1] = 1.0, 2.0                     # every cell observed once, 2 m down
+    view = GridView("ned", 1.0, 0.0, 0.0, 0.0, sums, clearance > 0, clearance)
+    first = np.array([39.5, 39.5, 1.0])              # the network's own spot comes first, whatever its score
+    picks = focus_candidates(view, first, (0.0, 0.0), config)
+    # (5, 5) scores best; (7, 5) is within 10 m of it; (5, 30) beats (30, 5) on clearance and travel alike.
+    np.testing.assert_allclose(picks, [first, [5.5, 5.5, 2.0], [5.5, 30.5, 2.0]])
+    np.testing.assert_allclose(focus_candidates(view, first, (0.0, 0.0), config, count=2), picks[:2])
+    near_first = focus_candidates(view, np.array([6.0, 6.0, 1.0]), (0.0, 0.0), config, separation_m=40.0)
+    np.testing.assert_allclose(near_first, [[6.0, 6.0, 1.0]])   # everything lies within 40 m of the first

@@ -47,12 +47,16 @@ def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, fl
     east = view.east0_m + (cols + 0.5) * view.cell_m
     score = np.minimum(view.clearance_m.ravel()[idx], config.clearance_saturation_m) \
         - config.travel_penalty_per_m * np.hypot(north - here_ne[0], east - here_ne[1])
-    for i in np.argsort(-score, kind="stable"):
-        if len(out) >= count:
+    # Greedy in score order (ties: grid order), vectorised: each pick is the best cell still far enough from all
+    # taken so far; thousands of landable cells would otherwise be walked one by one in Python.
+    free = np.ones(idx.size, dtype=bool)
+    for _ in range(count - 1):
+        free &= np.hypot(north - out[-1][0], east - out[-1][1]) >= separation_m
+        if not free.any():
             break
-        if all(math.hypot(north[i] - p[0], east[i] - p[1]) >= separation_m for p in out):
-            down, _, _ = view.cell_stats(int(rows[i]), int(cols[i]))
-            out.append(np.array([north[i], east[i], down if math.isfinite(down) else first[2]]))
+        i = int(np.argmax(np.where(free, score, -np.inf)))
+        down, _, _ = view.cell_stats(int(rows[i]), int(cols[i]))
+        out.append(np.array([north[i], east[i], down if math.isfinite(down) else first[2]]))
     return np.stack(out)
 
 

@@ -173,13 +173,17 @@ def column_seen(pose: CameraPose, k_cv: np.ndarray, origin_uv: tuple[int, int], 
         v_top = k_cv[1, 1] * top[1] / top[2] + k_cv[1, 2] - origin_uv[1]
     yy, xx = np.mgrid[0:h, 0:w]
     seen = measured & (top[2] > 0) & np.isfinite(u_top) & np.isfinite(v_top)
+    # A pixel's verdict depends only on its own column, and ``seen`` only ever turns False: the steps towards
+    # the column's top can be fixed once, and the lookups done on the flattened arrays.
+    du, dv = np.where(seen, u_top - xx, 0.0), np.where(seen, v_top - yy, 0.0)
+    range_flat, plane_flat, measured_flat = range_m.ravel(), plane_m.ravel(), measured.ravel()
     for s in np.linspace(1.0 / samples, 1.0, samples):
-        uq = np.rint(xx + s * np.where(seen, u_top - xx, 0.0)).astype(np.int64)
-        vq = np.rint(yy + s * np.where(seen, v_top - yy, 0.0)).astype(np.int64)
+        uq = np.rint(xx + s * du).astype(np.int64)
+        vq = np.rint(yy + s * dv).astype(np.int64)
         inside = (uq >= 0) & (uq < w) & (vq >= 0) & (vq < h)
-        uq, vq = np.clip(uq, 0, w - 1), np.clip(vq, 0, h - 1)
+        flat = np.clip(vq, 0, h - 1) * w + np.clip(uq, 0, w - 1)
         with np.errstate(invalid="ignore"):
-            short = range_m[vq, uq] - range_m < np.minimum(0.5 * (plane_m[vq, uq] - plane_m), beyond_m)
-        seen &= inside & ~(measured[vq, uq] & short)
+            short = range_flat[flat] - range_m < np.minimum(0.5 * (plane_flat[flat] - plane_m), beyond_m)
+        seen &= inside & ~(measured_flat[flat] & short)
     out: np.ndarray = seen
     return out
