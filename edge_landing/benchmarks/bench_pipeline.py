@@ -62,7 +62,7 @@ class BenchConfig:
     out: Optional[str] = None
     fusion_hz: float = 15.0   # the pipeline-rate mode fuses at most this often (edge-run --fusion-hz)
     runtime: Runtime = Runtime.ONNXRUNTIME   # the runtime that runs the given file(s) (edge-run --runtime)
-    limit_side_threads: bool = True   # OpenCV and BLAS at 1 thread each, as edge-run sets them
+    cap_side_threads: bool = True   # OpenCV and BLAS at 1 thread each, as edge-run sets them
 
 
 class MemoryReader(Reader):
@@ -142,7 +142,7 @@ def bench(cfg: BenchConfig) -> dict:
 
     from edge_landing.runtime.models import default_model_path
 
-    if cfg.limit_side_threads:
+    if cfg.cap_side_threads:
         limit_side_threads()
     inference: PairInference | JointInference
     session = SessionConfig(threads=cfg.threads, runtime=cfg.runtime)
@@ -209,7 +209,7 @@ def report(result: dict) -> str:
     lines = [f"model {result['model']} | {result['frames']} frames {result['frame_size'][1]}x{result['frame_size'][0]} "
              f"| input {result['model_input'][1]}x{result['model_input'][0]} | {result['config']['threads']} threads "
              f"| {result['config']['runtime']} | OpenCV/BLAS threads "
-             f"{'1/1 (as edge-run)' if result['config']['limit_side_threads'] else 'library defaults'}",
+             f"{'1/1 (as edge-run)' if result['config']['cap_side_threads'] else 'library defaults'}",
              "| mode | images/s | target updates/s | p50 ms | p90 ms | p99 ms | CPU ms/frame | vs model-only |",
              "|---|---|---|---|---|---|---|---|"]
     for mode, r in result["modes"].items():
@@ -251,7 +251,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
         raise InputError("--depth-model and --hvo-model go together")
     cfg = BenchConfig(a.model, a.camera, a.depth_model, a.hvo_model, a.frames, w, h, a.threads, a.rounds, out=a.out,
                       fusion_hz=a.fusion_hz, runtime=Runtime.from_string(a.runtime),
-                      limit_side_threads=not a.library_thread_defaults)
+                      cap_side_threads=not a.library_thread_defaults)
     result = bench(cfg)
     print(report(result))
     if cfg.out:

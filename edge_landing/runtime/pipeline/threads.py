@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+from threadpoolctl import threadpool_limits
 
 
 @dataclass(frozen=True)
@@ -25,6 +26,4 @@ def limit_side_threads(config: SideThreads = SideThreads()) -> None:
     if config.opencv > 0:
         cv2.setNumThreads(config.opencv)
     if config.blas > 0:
-        from threadpoolctl import threadpool_limits
-
         threadpool_limits(limits=config.blas, user_api="blas")
