@@ -157,7 +157,8 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
                                            truth)
                     st["safe"] += ok
                     if not ok:
-                        st["failures"].append({"frame": k, "why": why})
+                        st["failures"].append({"frame": k, "why": why,
+                                               "ned_m": [round(float(v), 2) for v in target.position_ned_m[:2]]})
                 if trace is not None and kind == "geometry":
                     trace.write(json.dumps(_trace_row(k, n_app, n_hov, name, s, target, fuser)) + "\n")
             if k % cfg.recall_every == 0:
@@ -184,7 +185,8 @@ def _trace_row(k: int, n_app: int, n_hov: int, name: str, s: Any, target: Any, f
     if res is not None:
         det = res.detectable_m[np.isfinite(res.detectable_m)]
         row.update(baseline_m=round(res.baseline_m, 2), ref_age_s=round(res.reference_age_s, 2),
-                   noise_px=round(res.flow_noise_px, 3), measurable=round(det.size / res.detectable_m.size, 3),
+                   noise_px=round(res.flow_noise_px, 3), rain=round(res.rain_share, 4),
+                   measurable=round(det.size / res.detectable_m.size, 3),
                    det_p50_m=round(float(np.median(det)), 3) if det.size else None,
                    plane_m=None if fuser.motion.ground_down_m is None
                    else round(fuser.motion.ground_down_m - float(s.position_ned_m[2]), 1))

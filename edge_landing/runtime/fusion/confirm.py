@@ -161,6 +161,9 @@ class GeometryConfirmation:
             est = self.motion.image_pose
             sigma = f" ±{est.sigma_m:.2f} m" if est is not None and est.ok else ""
             out = f"{out}; {EVIDENCE_IMAGE_POSE}{sigma}"
+        last = self.motion.last
+        if last is not None and last.rain_share > 0:
+            out = f"{out}; rain streaks filled in ({100 * last.rain_share:.0f} % of the window)"
         return out if not self.note else f"{out}; {self.note}"
 
     def unconfirmed_reason(self, proposal: Choice, view: Optional[GridView], position: Optional[np.ndarray],

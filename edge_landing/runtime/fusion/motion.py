@@ -39,6 +39,7 @@ from edge_landing.runtime.fusion.parallax import (
     parallax_height,
     plane_homography,
 )
+from edge_landing.runtime.fusion.streaks import RainFilter
 
 __all__ = ["POSE_IMAGE", "POSE_TELEMETRY", "CameraPose", "DisPreset", "MotionConfig", "MotionStage", "ParallaxResult",
            "parallax_height", "plane_homography"]
@@ -83,6 +84,7 @@ class MotionStage:
         self.last_reason = ""
         self._ground: Optional[tuple[float, float]] = None   # (time, NED down of the local ground last measured)
         self._scan = 0                                         # next window position without a candidate spot
+        self._rain = RainFilter(config.streaks)               # rain streaks out of each pair (fusion.streaks)
         self.image_pose: Optional[ImagePose] = None     # the last image-only estimate (None: telemetry pose)
         self.position_ned_m: Optional[np.ndarray] = None  # where the last frame was placed (odometry or NED)
         self.odometry_epoch = 0                          # + 1 each time image odometry restarts its frame
@@ -99,6 +101,7 @@ class MotionStage:
         self._history.clear()
         self.last, self.last_reason = None, ""
         self._ground = None
+        self._rain.reset()
         self.image_pose, self.position_ned_m = None, None
         self._chain_delta, self.anchored, self._telemetry_s = None, False, -math.inf
 
@@ -314,7 +317,7 @@ class MotionStage:
         wh, ww = rs.stop - rs.start, cs.stop - cs.start
         wrp = cv2.warpPerspective(ref.grey, hom @ shift, (ww, wh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                   borderMode=cv2.BORDER_REPLICATE)
-        cur = np.ascontiguousarray(grey[rs, cs])
+        cur, wrp, rain = self._rain.apply(np.ascontiguousarray(grey[rs, cs]), wrp, time_s)
         flow = np.asarray(self._dis.calc(cur, wrp, None))  # type: ignore[call-overload]
         xx, yy = self._pix[0][rs, cs], self._pix[1][rs, cs]
         mx, my = xx + flow[..., 0], yy + flow[..., 1]
@@ -397,4 +400,4 @@ class MotionStage:
         return ParallaxResult(time_s, rs, cs, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
                               time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & ~explained,
                               POSE_TELEMETRY if image_pose is None else POSE_IMAGE,
-                              0.0 if image_pose is None else image_pose.sigma_m)
+                              0.0 if image_pose is None else image_pose.sigma_m, rain)

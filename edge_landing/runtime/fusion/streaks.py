@@ -1,0 +1,104 @@
+"""Rain streaks out of a frame pair before the motion stage's flow (ARCHITECTURE.md §11).
+
+Rain draws thin, bright, near-vertical streaks that land somewhere else in every frame. DIS matches them as
+texture: on rainy sim flights the flow noise doubled, open fields read as metres high and geometry confirmed
+nothing. A streak pixel is brighter than its row neighbours (a grey top-hat over three columns) and has such
+pixels above and below it (a run along a near-vertical line). Ground texture has such features too (grass
+blades, markings, a pole); what tells rain apart is that it does not persist. The pair is compared after the
+reference was warped onto the ground plane: thin bright features of one image with none within
+``persist_px`` in the other are rain. When rain covers at least ``min_share`` of the window (in clear air only
+the few thin features that parallax moved are unmatched; half of it within ``hold_s`` of a pair that found
+rain), the rain of each image takes its row neighbours' level; otherwise the pair is left exactly as it is.
+Only unmatched features are filled: filling every thin feature in rain also erased the texture of obstacles
+(a bush) and let geometry confirm ground beside them. A thin obstacle whose parallax exceeds ``persist_px``
+still looks like rain in a rainy pair; thin walls and poles are below what DIS resolves anyway (docs §11).
+
+Pure OpenCV on uint8, no I/O.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from edge_landing.runtime.core.errors import InputError
+
+
+@dataclass(frozen=True)
+class StreakConfig:
+    """Grey levels and pixels at the motion stage's size."""
+
+    contrast: int = 8          # a streak pixel is this much brighter than the darker of its row neighbours
+    run_px: int = 6            # of the 3×7 pixels around it, at least this many are streak-bright too
+    persist_px: int = 2        # a thin feature with one in the other image this close is texture, not rain
+    min_share: float = 0.03    # pairs with less rain than this share of the window are left alone (0: off) ...
+    hold_s: float = 10.0       # ... or half of it, within this time of a pair that found min_share (weather lasts)
+
+    def __post_init__(self) -> None:
+        if not (0 < self.contrast <= 255 and 1 <= self.run_px <= 21 and self.persist_px >= 0):
+            raise InputError(f"streak settings out of range: contrast {self.contrast}, run {self.run_px}, "
+                             f"persist {self.persist_px}")
+        if not 0 <= self.min_share <= 1:
+            raise InputError(f"streak min_share must be in [0, 1], got {self.min_share}")
+        if not self.hold_s >= 0:
+            raise InputError(f"streak hold_s must be >= 0, got {self.hold_s}")
+
+
+_ROW3 = np.ones((1, 3), np.uint8)
+
+
+def streak_mask(grey: np.ndarray, config: StreakConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(thin bright near-vertical pixels, uint8 0/1; the image with thin bright features opened away)."""
+    tophat = cv2.morphologyEx(grey, cv2.MORPH_TOPHAT, _ROW3)           # grey - opening, >= 0
+    bright = (tophat >= config.contrast).view(np.uint8)
+    run = cv2.boxFilter(bright, -1, (3, 7), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    mask = bright & (run >= config.run_px).view(np.uint8)
+    return mask, cv2.subtract(grey, tophat)
+
+
+def suppress_streaks(cur: np.ndarray, ref: np.ndarray, config: StreakConfig, raining: bool = False
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
+    """(cur, ref with their rain filled in, share of the window found to be rain in either image).
+
+    ``cur`` and ``ref``: uint8 H×W, the reference already warped onto ``cur`` by the ground plane. Returned
+    unchanged (the same arrays) when the share is below ``min_share`` (half of it when ``raining``: a recent
+    pair found rain; moderate rain straddles the threshold from pair to pair).
+    """
+    if config.min_share <= 0:
+        return cur, ref, 0.0
+    m_cur, open_cur = streak_mask(cur, config)
+    m_ref, open_ref = streak_mask(ref, config)
+    near = np.ones((2 * config.persist_px + 1, 2 * config.persist_px + 1), np.uint8)
+    rain_cur = m_cur & (1 - cv2.dilate(m_ref, near))
+    rain_ref = m_ref & (1 - cv2.dilate(m_cur, near))
+    share = (cv2.countNonZero(rain_cur) + cv2.countNonZero(rain_ref)) / float(2 * cur.size)
+    if share < (0.5 if raining else 1.0) * config.min_share:
+        return cur, ref, share
+    return _fill(cur, rain_cur, open_cur), _fill(ref, rain_ref, open_ref), share
+
+
+def _fill(grey: np.ndarray, rain: np.ndarray, opened: np.ndarray) -> np.ndarray:
+    out: np.ndarray = grey.copy()
+    cv2.copyTo(opened, cv2.dilate(rain, _ROW3), out)    # anti-aliased streaks: their dimmer rim goes too
+    return out
+
+
+class RainFilter:
+    """``suppress_streaks`` with the memory of when a pair last found rain (``hold_s``), for one keyframe ring."""
+
+    def __init__(self, config: StreakConfig):
+        self.config = config
+        self.found_s = -math.inf
+
+    def reset(self) -> None:
+        self.found_s = -math.inf
+
+    def apply(self, cur: np.ndarray, ref: np.ndarray, time_s: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """(cur, ref, share of the window filled in as rain: 0 when nothing was)."""
+        cfg = self.config
+        out_cur, out_ref, share = suppress_streaks(cur, ref, cfg, 0.0 <= time_s - self.found_s <= cfg.hold_s)
+        if share >= cfg.min_share > 0:
+            self.found_s = time_s
+        return out_cur, out_ref, share if out_cur is not cur else 0.0
