@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from edge_landing.runtime.core.errors import InputError
-from edge_landing.runtime.fusion.streaks import StreakConfig, streak_mask, suppress_streaks
+from edge_landing.runtime.fusion.streaks import RainFilter, StreakConfig, streak_mask, suppress_streaks
 
 
 def _ground(seed: int = 0, hw: tuple[int, int] = (120, 160), roughness: float = 1.0) -> np.ndarray:
@@ -86,3 +86,18 @@ def test_moderate_rain_is_filled_once_a_recent_pair_found_rain():
     assert _err(a, clean) < 0.65 * _err(cur, clean) and _err(b, clean) < 0.65 * _err(ref, clean)
     with pytest.raises(InputError, match="hold_s"):
         StreakConfig(hold_s=-1.0)
+
+
+def test_rain_filter_holds_for_hold_s_and_forgets_on_reset():
+    clean = _ground(9)
+    heavy = (_rain(clean, 0.9, 1), _rain(clean, 0.9, 2))
+    moderate = (_rain(clean, 0.4, 3), _rain(clean, 0.4, 4))
+    config = StreakConfig()
+    rain = RainFilter(config)
+    assert rain.apply(*moderate, 0.0)[2] == 0.0                   # moderate rain alone is below the threshold
+    assert rain.apply(*heavy, 1.0)[2] >= config.min_share          # heavy rain is filled and remembered ...
+    assert rain.apply(*moderate, 1.0 + config.hold_s - 0.5)[2] > 0.0     # ... so moderate rain is filled too
+    assert rain.apply(*moderate, 1.0 + config.hold_s + 0.5)[2] == 0.0    # until the hold has passed
+    rain.apply(*heavy, 20.0)
+    rain.reset()
+    assert rain.apply(*moderate, 21.0)[2] == 0.0
