@@ -162,28 +162,29 @@ def column_seen(pose: CameraPose, k_cv: np.ndarray, origin_uv: tuple[int, int], 
     row) in the frame. Pure numpy.
     """
     h, w = measured.shape
-    c = pose.position_ned_m
-    r = pose.r_nc
-    dirs = np.einsum("ij,jhw->ihw", r, np.stack([xc[0], xc[1], np.ones_like(xc[0])]))
+    c, r = pose.position_ned_m, pose.r_nc
+    # Flat 3×N arrays and 3×3 matrix products: cheaper than einsums over H×W.
+    dirs = r[:, :2] @ np.stack([xc[0].reshape(-1), xc[1].reshape(-1)]) + r[:, 2:3]
+    ned_f, meas = ned.reshape(3, -1), measured.reshape(-1)
     with np.errstate(divide="ignore", invalid="ignore"):
         plane_m = np.where(dirs[2] > 0, pose.agl_m * np.hypot(dirs[0], dirs[1]) / dirs[2], np.nan)
-        range_m = np.where(measured, np.hypot(ned[0] - c[0], ned[1] - c[1]), np.nan)
-        top = np.einsum("ji,jhw->ihw", r, ned - (c + np.array([0.0, 0.0, column_m]))[:, None, None])
+        range_m = np.where(meas, np.hypot(ned_f[0] - c[0], ned_f[1] - c[1]), np.nan)
+        top = r.T @ (ned_f - (c + np.array([0.0, 0.0, column_m]))[:, None])
         u_top = k_cv[0, 0] * top[0] / top[2] + k_cv[0, 2] - origin_uv[0]
         v_top = k_cv[1, 1] * top[1] / top[2] + k_cv[1, 2] - origin_uv[1]
-    yy, xx = np.mgrid[0:h, 0:w]
-    seen = measured & (top[2] > 0) & np.isfinite(u_top) & np.isfinite(v_top)
+    xx = np.tile(np.arange(w, dtype=np.float64), h)
+    yy = np.repeat(np.arange(h, dtype=np.float64), w)
+    seen = meas & (top[2] > 0) & np.isfinite(u_top) & np.isfinite(v_top)
     # A pixel's verdict depends only on its own column, and ``seen`` only ever turns False: the steps towards
-    # the column's top can be fixed once, and the lookups done on the flattened arrays.
+    # the column's top can be fixed once, and the lookups done on the flat arrays.
     du, dv = np.where(seen, u_top - xx, 0.0), np.where(seen, v_top - yy, 0.0)
-    range_flat, plane_flat, measured_flat = range_m.ravel(), plane_m.ravel(), measured.ravel()
     for s in np.linspace(1.0 / samples, 1.0, samples):
-        uq = np.rint(xx + s * du).astype(np.int64)
-        vq = np.rint(yy + s * dv).astype(np.int64)
+        uq = np.rint(xx + s * du)
+        vq = np.rint(yy + s * dv)
         inside = (uq >= 0) & (uq < w) & (vq >= 0) & (vq < h)
-        flat = np.clip(vq, 0, h - 1) * w + np.clip(uq, 0, w - 1)
+        flat = (np.clip(vq, 0, h - 1) * w + np.clip(uq, 0, w - 1)).astype(np.intp)
         with np.errstate(invalid="ignore"):
-            short = range_flat[flat] - range_m < np.minimum(0.5 * (plane_flat[flat] - plane_m), beyond_m)
-        seen &= inside & ~(measured_flat[flat] & short)
-    out: np.ndarray = seen
+            short = range_m[flat] - range_m < np.minimum(0.5 * (plane_m[flat] - plane_m), beyond_m)
+        seen &= inside & ~(meas[flat] & short)
+    out: np.ndarray = seen.reshape(h, w)
     return out
