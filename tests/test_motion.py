@@ -43,13 +43,13 @@ def _flat_world(box_rows: list, seed: int = 0):
     return _finish(sim.Style.SUBURBAN, seed, part, terrain, GroundMap(Material.GRASS), np.zeros((0, 2)))
 
 
-def _frames(world, positions, yaw: float = 0.0):
+def _frames(world, positions, yaw: float = 0.0, effects=EFFECTS):
     renderer = sim.Renderer(world, INTR, MOUNT)
     rng = np.random.default_rng(1)
     att = Attitude(0.0, 0.0, yaw)
     for k, p in enumerate(positions):
         p = np.asarray(p, np.float64)
-        r = renderer.render(p, att, EFFECTS, rng)
+        r = renderer.render(p, att, effects, rng)
         yield k, k / FPS, r, VehicleState(k / FPS, att, p, float(-p[2]), "sim")
 
 
@@ -106,13 +106,18 @@ def test_no_safe_area_gives_no_target_even_from_a_lying_model():
     assert all(t.valid for t in liar_alone)               # not vacuous: without geometry it would land there
 
 
+def _car_park():
+    """Parked cars and a house-sized block on grass; a low pass (25 m) north at 3 m/s into it from open grass
+    (the liar lands a few metres ahead of the vehicle)."""
+    cars = [[n, e, 2.2, 0.9, 1.5] for n in np.arange(15.0, 45.0, 5.0) for e in (-12.0, -6.0, 0.0, 6.0)]
+    world = _flat_world(cars + [[30.0, 18.0, 6.0, 5.0, 6.0]])
+    return world, [(-14.0 + 0.3 * k, -3.0 + 2.0 * math.sin(0.2 * k), -25.0) for k in range(100)]
+
+
 def test_lying_model_cannot_put_a_target_on_a_car_or_a_roof():
     """A low pass (25 m) over a field with parked cars and a house-sized block: every geometry-confirmed
     target is on ground-truth safe ground (ray casting), while the liar alone lands on them."""
-    cars = [[n, e, 2.2, 0.9, 1.5] for n in np.arange(15.0, 45.0, 5.0) for e in (-12.0, -6.0, 0.0, 6.0)]
-    world = _flat_world(cars + [[30.0, 18.0, 6.0, 5.0, 6.0]])
-    # North at 3 m/s over open grass into the car park: the liar lands a few metres ahead of the vehicle.
-    path = [(-14.0 + 0.3 * k, -3.0 + 2.0 * math.sin(0.2 * k), -25.0) for k in range(100)]
+    world, path = _car_park()
     truth = TruthConfig(log="", clearance_m=FusionConfig().required_clearance_m)
     geo = LandingFuser(FusionConfig(), INTR, MOUNT)
     liar = LandingFuser(FusionConfig(allow_unconfirmed=True), INTR, MOUNT)
@@ -171,9 +176,7 @@ def test_rain_streaks_do_not_blind_geometry_or_make_it_unsafe():
 
     from edge_landing.runtime.fusion.streaks import StreakConfig
 
-    cars = [[n, e, 2.2, 0.9, 1.5] for n in np.arange(15.0, 45.0, 5.0) for e in (-12.0, -6.0, 0.0, 6.0)]
-    world = _flat_world(cars + [[30.0, 18.0, 6.0, 5.0, 6.0]])
-    path = [(-14.0 + 0.3 * k, -3.0 + 2.0 * math.sin(0.2 * k), -25.0) for k in range(100)]
+    world, path = _car_park()
     truth = TruthConfig(log="", clearance_m=FusionConfig().required_clearance_m)
     rain = replace(EFFECTS, rain=0.9)
     base = FusionConfig()
@@ -181,16 +184,10 @@ def test_rain_streaks_do_not_blind_geometry_or_make_it_unsafe():
     fusers = {"filled": LandingFuser(base, INTR, MOUNT), "left in": LandingFuser(left_in, INTR, MOUNT)}
     confirmed = {name: 0 for name in fusers}
     rain_seen = []
-    renderer = sim.Renderer(world, INTR, MOUNT)
-    rng = np.random.default_rng(1)
-    att = Attitude(0.0, 0.0, 0.0)
-    for k, p in enumerate(path):
-        p = np.asarray(p, np.float64)
-        r = renderer.render(p, att, rain, rng)
-        state = VehicleState(k / FPS, att, p, float(-p[2]), "sim")
+    for k, t, r, state in _frames(world, path, effects=rain):
         pred = lying_prediction(INTR, MOUNT, state, k)
         for name, fuser in fusers.items():
-            target = fuser.update(pred, state, k / FPS, r.rgb)
+            target = fuser.update(pred, state, t, r.rgb)
             if name == "filled" and fuser.motion.last is not None:
                 rain_seen.append(fuser.motion.last.rain_share)     # 0 where nothing was filled in
             if target.valid:

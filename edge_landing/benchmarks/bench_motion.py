@@ -95,8 +95,10 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--json", help="write the results here")
     a = p.parse_args(argv)
     results = []
-    for size in a.sizes:
-        w, h = (int(v) for v in size.lower().split("x"))
+    from edge_landing.benchmarks.resolution_sweep import _size
+
+    sizes = [_size(s) for s in a.sizes]          # all checked before the first (slow) render
+    for w, h in sizes:
         r = bench_size(w, h, a.frames, a.warmup, a.threads, a.style, a.seed)
         results.append(r)
         s, f, m = r["stage_alone_ms"], r["fusion_ms"], r["model_ms"]

@@ -8,9 +8,9 @@ line up cell for cell. Per cell, from each frame pair (motion.ParallaxResult):
   drops count too: a site must be flat).
 Across frames: the cell's mean height in each frame is fused by inverse variance (σ = the worst pixel's,
 weights decaying with ``memory_s``): sensor noise and rain differ from frame to frame, so pairs that each
-detect 0.7-1.5 m together detect less (measured on noisy flights: flow noise 0.3-0.8 px against 0.2 px,
-so single pairs at 60 m rarely reached 0.5 m). Pairs share keyframes and DIS's texture errors, so the
-credit is capped: the fused detectable height is at least the best single pair's / ``max_fusion_gain``.
+detect too little on a noisy flight detect less together (measurements: docs §11). Pairs share keyframes
+and DIS's texture errors, so the credit is capped: the fused detectable height is at least the best single
+pair's / ``max_fusion_gain``.
 ``clear_t`` is the last time a frame measured the cell, found it not high, and the fused evidence was
 measurable to the obstacle height and not high; ``seen_w`` / ``high_w`` are weights of frames that
 measured it / found it high. A cell is *geometry-clear* while ``now - clear_t <= memory_s`` and it is not
@@ -128,8 +128,8 @@ class GeometryGrid:
         self._fused[1][win] += w * np.where(usable, mean_h, 0.0).astype(np.float32)
         fused_det, fused_high = self._fused_evidence(self._fused[:, win[0], win[1]], best)
         # The fused credit only where no frame within the memory found the cell high: a thin wall or pole that
-        # DIS smooths to a tenth of its height stands out in few frames (1 of 8 on suburban 6262, too few for
-        # the vote) and must not be confirmed by averaging the frames that missed it.
+        # DIS smooths to a fraction of its height stands out in few frames (too few for the vote) and must not
+        # be confirmed by averaging the frames that missed it.
         credit = (fused_det <= self.obstacle_height_m) & (self._w[1][win] < 0.5)
         confirm = measured & ((det <= self.obstacle_height_m) | credit) & ~fused_high & ~high & ~suspect
         self._clear_t[win][confirm] = t

@@ -50,12 +50,12 @@ _ROW3 = np.ones((1, 3), np.uint8)
 
 
 def streak_mask(grey: np.ndarray, config: StreakConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(thin bright near-vertical pixels, uint8 0/1; the image with thin bright features opened away)."""
+    """(thin bright near-vertical pixels, uint8 0/1; the grey top-hat: how much brighter than the opening)."""
     tophat = cv2.morphologyEx(grey, cv2.MORPH_TOPHAT, _ROW3)           # grey - opening, >= 0
     bright = (tophat >= config.contrast).view(np.uint8)
     run = cv2.boxFilter(bright, -1, (3, 7), normalize=False, borderType=cv2.BORDER_CONSTANT)
     mask = bright & (run >= config.run_px).view(np.uint8)
-    return mask, cv2.subtract(grey, tophat)
+    return mask, tophat
 
 
 def suppress_streaks(cur: np.ndarray, ref: np.ndarray, config: StreakConfig, raining: bool = False
@@ -68,20 +68,21 @@ def suppress_streaks(cur: np.ndarray, ref: np.ndarray, config: StreakConfig, rai
     """
     if config.min_share <= 0:
         return cur, ref, 0.0
-    m_cur, open_cur = streak_mask(cur, config)
-    m_ref, open_ref = streak_mask(ref, config)
+    m_cur, top_cur = streak_mask(cur, config)
+    m_ref, top_ref = streak_mask(ref, config)
     near = np.ones((2 * config.persist_px + 1, 2 * config.persist_px + 1), np.uint8)
     rain_cur = m_cur & (1 - cv2.dilate(m_ref, near))
     rain_ref = m_ref & (1 - cv2.dilate(m_cur, near))
     share = (cv2.countNonZero(rain_cur) + cv2.countNonZero(rain_ref)) / float(2 * cur.size)
     if share < (0.5 if raining else 1.0) * config.min_share:
         return cur, ref, share
-    return _fill(cur, rain_cur, open_cur), _fill(ref, rain_ref, open_ref), share
+    return _fill(cur, rain_cur, top_cur), _fill(ref, rain_ref, top_ref), share
 
 
-def _fill(grey: np.ndarray, rain: np.ndarray, opened: np.ndarray) -> np.ndarray:
+def _fill(grey: np.ndarray, rain: np.ndarray, tophat: np.ndarray) -> np.ndarray:
+    """``grey`` with its rain pixels at the opening's level (grey - top-hat), only when there is rain to fill."""
     out: np.ndarray = grey.copy()
-    cv2.copyTo(opened, cv2.dilate(rain, _ROW3), out)    # anti-aliased streaks: their dimmer rim goes too
+    cv2.copyTo(cv2.subtract(grey, tophat), cv2.dilate(rain, _ROW3), out)   # anti-aliased: the dimmer rim goes too
     return out
 
 
