@@ -7,7 +7,8 @@ beside its base rate, δ1 and AbsRel after one per-scene scale.
     python -m edge_landing.benchmarks.honest_report --out out/honest \\
         --scene rural:901 --scene rural:902:randomise --scene suburban:930:randomise
 
-``STYLE:SEED[:randomise]`` scenes are rendered with ``edge-sim --frames N`` into OUT (kept when present).
+``STYLE:SEED[:randomise][:hazards]`` scenes are rendered with ``edge-sim --frames N [--randomise] [--hazards]``
+into OUT (kept when present).
 """
 from __future__ import annotations
 
@@ -29,14 +30,19 @@ def _tool(module: str, *args: str) -> None:
         raise InputError(f"{module} {' '.join(args)} failed: {(proc.stderr or proc.stdout).strip().splitlines()[-1:]}")
 
 
+SCENE_FLAGS = ("randomise", "hazards")
+
+
 def scene_folder(out: Path, spec: str, frames: int) -> Path:
     parts = spec.split(":")
-    if len(parts) not in (2, 3) or not parts[1].isdigit() or (len(parts) == 3 and parts[2] != "randomise"):
-        raise InputError(f"--scene must be STYLE:SEED or STYLE:SEED:randomise, got '{spec}'")
+    flags = parts[2:]
+    if len(parts) < 2 or not parts[0] or not parts[1].isdigit() or any(f not in SCENE_FLAGS for f in flags) \
+            or len(set(flags)) != len(flags):
+        raise InputError(f"--scene must be STYLE:SEED[:randomise][:hazards], got '{spec}'")
     folder = out / spec.replace(":", "_")
     if not (folder / "scene.json").exists():
         _tool("edge_landing.sim.cli", str(folder), "--frames", str(frames), "--style", parts[0], "--seed", parts[1],
-              "--no-progress", "--overwrite", *(["--randomise"] if len(parts) == 3 else []))
+              "--no-progress", "--overwrite", *[f"--{f}" for f in flags])
     return folder
 
 
@@ -71,7 +77,7 @@ def markdown(rows: Sequence[dict]) -> str:
 def _main(argv: Optional[Sequence[str]] = None) -> int:
     p = CliParser(prog="honest_report", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, type=Path, help="folder for scenes, calibrations and edge-eval JSON")
-    p.add_argument("--scene", action="append", required=True, help="STYLE:SEED or STYLE:SEED:randomise")
+    p.add_argument("--scene", action="append", required=True, help="STYLE:SEED[:randomise][:hazards]")
     p.add_argument("--model", action="append", default=None,
                    help="ONNX model (repeatable; default: the shipped FP32 and INT8)")
     p.add_argument("--frames", type=int, default=40)
