@@ -19,6 +19,7 @@ from typing import Any, Optional, Sequence
 import cv2
 import numpy as np
 
+from edge_landing.benchmarks.resolution_sweep import parse_size
 from edge_landing.cli.common import CliParser, run_cli
 from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.messages import VehicleState
@@ -95,9 +96,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--json", help="write the results here")
     a = p.parse_args(argv)
     results = []
-    from edge_landing.benchmarks.resolution_sweep import _size
-
-    sizes = [_size(s) for s in a.sizes]          # all checked before the first (slow) render
+    sizes = [parse_size(s) for s in a.sizes]          # all checked before the first (slow) render
     for w, h in sizes:
         r = bench_size(w, h, a.frames, a.warmup, a.threads, a.style, a.seed)
         results.append(r)

@@ -153,7 +153,7 @@ def table(rows: List[Dict[str, Any]]) -> str:
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
-    from edge_landing.benchmarks.resolution_sweep import _size
+    from edge_landing.benchmarks.resolution_sweep import parse_size
     from edge_landing.cli.common import CliParser
 
     p = CliParser(prog="frame_cost", description=__doc__.split("\n\n")[0])
@@ -169,7 +169,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
                          f"{a.threads}, {a.iterations}, {a.warmup}")
     if a.model and not Path(a.model).is_file():
         raise InputError(f"--model file {a.model} does not exist")
-    rows = measure(CostConfig(tuple(_size(s) for s in a.sizes), a.threads, a.warmup, a.iterations, model=a.model))
+    rows = measure(CostConfig(tuple(parse_size(s) for s in a.sizes), a.threads, a.warmup, a.iterations, model=a.model))
     print(table(rows))
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))

@@ -211,7 +211,8 @@ def table(results: Sequence[FlightResult]) -> str:
     return "\n".join(rows)
 
 
-def _size(text: str) -> Tuple[int, int]:
+def parse_size(text: str) -> Tuple[int, int]:
+    """``WIDTHxHEIGHT`` (as ``--sizes`` takes it) -> (width, height); InputError naming the bad value."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
@@ -237,7 +238,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     a = p.parse_args(argv)
     if a.frames < 10:
         raise InputError(f"--frames must be at least 10 (a flight needs approach, hover and descent), got {a.frames}")
-    config = SweepConfig(Path(a.out), tuple(a.styles), tuple(a.seeds), tuple(_size(s) for s in a.sizes),
+    config = SweepConfig(Path(a.out), tuple(a.styles), tuple(a.seeds), tuple(parse_size(s) for s in a.sizes),
                          a.frames, video=not a.png, geometry=not a.network_only)
     results = sweep(config)
     print(table(results))

@@ -74,9 +74,14 @@ def suppress_streaks(cur: np.ndarray, ref: np.ndarray, config: StreakConfig, rai
     rain_cur = m_cur & (1 - cv2.dilate(m_ref, near))
     rain_ref = m_ref & (1 - cv2.dilate(m_cur, near))
     share = (cv2.countNonZero(rain_cur) + cv2.countNonZero(rain_ref)) / float(2 * cur.size)
-    if share < (0.5 if raining else 1.0) * config.min_share:
+    if not fills(share, config, raining):
         return cur, ref, share
     return _fill(cur, rain_cur, top_cur), _fill(ref, rain_ref, top_ref), share
+
+
+def fills(share: float, config: StreakConfig, raining: bool) -> bool:
+    """Whether a pair with this rain ``share`` is filled in (half the threshold while ``raining``)."""
+    return config.min_share > 0 and share >= (0.5 if raining else 1.0) * config.min_share
 
 
 def _fill(grey: np.ndarray, rain: np.ndarray, tophat: np.ndarray) -> np.ndarray:
@@ -99,7 +104,8 @@ class RainFilter:
     def apply(self, cur: np.ndarray, ref: np.ndarray, time_s: float) -> tuple[np.ndarray, np.ndarray, float]:
         """(cur, ref, share of the window filled in as rain: 0 when nothing was)."""
         cfg = self.config
-        out_cur, out_ref, share = suppress_streaks(cur, ref, cfg, 0.0 <= time_s - self.found_s <= cfg.hold_s)
-        if share >= cfg.min_share > 0:
+        raining = 0.0 <= time_s - self.found_s <= cfg.hold_s
+        out_cur, out_ref, share = suppress_streaks(cur, ref, cfg, raining)
+        if fills(share, cfg, False):
             self.found_s = time_s
-        return out_cur, out_ref, share if out_cur is not cur else 0.0
+        return out_cur, out_ref, share if fills(share, cfg, raining) else 0.0
