@@ -97,6 +97,47 @@ def test_an_outlier_pixel_is_not_an_obstacle_a_standing_thing_is_and_grows_after
     assert view.obstacle.sum() <= 25                    # the box grown by 1 m, not the outliers' cells
 
 
+def test_the_view_follows_evidence_through_moves_and_window_offsets():
+    """The view computes only where evidence was ever added: moved with the grid, cut where it leaves the grid,
+    and read through a window offset from the grid's own cells, it says the same as before the move."""
+    grid = _grid()
+    shape = (20, 20)
+    height = np.zeros(shape)
+    height[10:12, 10:12] = 1.0                              # an obstacle cell amid clear ones, at (7.5-8, 7.5-8) m
+    for k in range(5):
+        grid.add(_result(height, np.full(shape, 0.3), np.zeros(shape, bool), 0.2 * k))
+    origin0 = (grid.north0_m, grid.east0_m)
+    before = grid.view(*origin0, (grid.size, grid.size), 0.8)
+    assert before.clear.sum() > 0 and before.obstacle.sum() > 0
+
+    def cell(north: float, east: float, origin: tuple[float, float]) -> tuple[int, int]:
+        return int(math.floor((north - origin[0]) / 0.5)), int(math.floor((east - origin[1]) / 0.5))
+
+    points = [(5.1 + 0.5 * i, 5.1 + 0.5 * j) for i in range(10) for j in range(10)]   # over the evidence
+    # Moved (whole cells) with the evidence still inside; read through the grid's own window and an offset one.
+    grid.centre_on(12.0, -3.0)
+    for origin, size in (((grid.north0_m, grid.east0_m), grid.size), ((grid.north0_m + 3.0, grid.east0_m + 20.0), 50)):
+        after = grid.view(*origin, (size, size), 0.8)
+        for north, east in points:
+            new, old = cell(north, east, origin), cell(north, east, origin0)
+            assert after.clear[new] == before.clear[old] and after.obstacle[new] == before.obstacle[old]
+            assert after.detectable_m[new] == before.detectable_m[old]
+    # Moved so that the grid's edge cuts through the evidence: what left is gone, what stayed is unchanged.
+    grid.centre_on(26.0, 0.0)
+    assert 5.0 < grid.north0_m < 10.0
+    origin = (grid.north0_m, grid.east0_m)
+    cut = grid.view(*origin, (grid.size, grid.size), 0.8)
+    for north, east in points:
+        if north >= grid.north0_m:
+            new, old = cell(north, east, origin), cell(north, east, origin0)
+            assert cut.clear[new] == before.clear[old] and cut.obstacle[new] == before.obstacle[old]
+    window = grid.view(origin[0] - 5.0, origin[1], (grid.size, grid.size), 0.8)   # 10 rows before the grid
+    assert not window.clear[:10].any() and np.isinf(window.detectable_m[:10]).all()
+    grid.centre_on(500.0, 500.0)                             # everything left the grid: nothing is kept
+    gone = grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 0.8)
+    assert not gone.clear.any() and not gone.obstacle.any() and np.isinf(gone.detectable_m).all()
+
+
 def test_the_stage_runs_every_geometry_interval():
     world = _flat_world([[80.0, 60.0, 1.0, 1.0, 1.0]])
     renderer = sim.Renderer(world, INTR, MOUNT)

@@ -3,8 +3,12 @@
 Renders the first frames of an ``edge-sim --flight`` flight (approach, the vehicle moving) at each camera
 size, then times, on the same frames: the motion stage alone (``MotionStage.update``: keyframe pick,
 plane warp, DIS on the window cropped around the network's spot, heights), the whole fusion with it
-(``LandingFuser.update`` with the image) and the shipped model's inference, with ``--threads`` threads
-for OpenCV and ONNX Runtime, after a warm-up. Percentiles are over frames.
+(``LandingFuser.update`` with the image) and the shipped model's inference (``--threads`` threads), after a
+warm-up. Percentiles are over frames. Thread pools as edge-run sets them (pipeline.threads): OpenCV at
+``--opencv-threads`` (edge-run: 1), numpy's BLAS at one thread. Left at its default, OpenBLAS's idle threads spin
+after every small matrix product and take a core from OpenCV's DIS (measured here: 2-3 ms more per run).
+The stage runs every ``geometry_interval_s`` of flight time, so its cost per frame depends on the camera's rate
+(``--fps``, the flight's frame rate): a 30 frames/s camera pays it on one frame in six, 10 frames/s on one in two.
 
     python -m edge_landing.benchmarks.bench_motion --sizes 160x120 320x240 640x480
 """
@@ -16,15 +20,17 @@ import time
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
-import cv2
 import numpy as np
 
 from edge_landing.benchmarks.resolution_sweep import parse_size
 from edge_landing.cli.common import CliParser, run_cli
 from edge_landing.runtime.core.camera import Mount
+from edge_landing.runtime.core.cpu_features import cpu_features
+from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import VehicleState
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from edge_landing.runtime.fusion.motion import CameraPose
+from edge_landing.runtime.pipeline.threads import SideThreads, limit_side_threads
 
 
 def _pct(ms: list[float]) -> dict[str, float]:
@@ -33,8 +39,8 @@ def _pct(ms: list[float]) -> dict[str, float]:
             "mean": float(np.mean(a))}
 
 
-def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, style: str, seed: int
-               ) -> dict[str, Any]:
+def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, style: str, seed: int,
+               fps: float = 10.0, opencv_threads: int = 1) -> dict[str, Any]:
     from edge_landing import sim
     from edge_landing.benchmarks.lying_model import lying_prediction
     from edge_landing.runtime.models import default_model_path
@@ -42,7 +48,7 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
     from edge_landing.sim.generate import SimConfig, render_sample, vehicle_samples
 
     scfg = SimConfig(out=Path("."), frames=200, style=sim.Style.from_string(style), seed=seed, flight=True,
-                     fps=10.0, width=width, height=height)
+                     fps=fps, width=width, height=height)
     world = sim.build_world(scfg.style, seed, hazards=True)
     mount, intr = Mount(), scfg.intrinsics
     renderer = sim.Renderer(world, intr, mount)
@@ -51,7 +57,7 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
         if k >= warmup + frames:
             break
         shots.append((s, render_sample(scfg, k, s, renderer).rgb))
-    cv2.setNumThreads(threads)
+    limit_side_threads(SideThreads(opencv=opencv_threads, blas=1))
     fuser = LandingFuser(FusionConfig(), intr, mount)
     model = OnnxModel.load(default_model_path(), threads)
     stage_ms, fusion_ms, model_ms = [], [], []
@@ -77,9 +83,11 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
         if k >= warmup:
             alone_ms.append(1e3 * (time.perf_counter() - t0))
     window = list(alone.config.window_hw)
+    cpu = cpu_features()
     # Shares of means: the stage runs every geometry_interval_s, so its p50 over frames says little alone.
     stage, total = _pct(stage_ms), float(np.mean(np.asarray(fusion_ms) + np.asarray(model_ms)))
-    return {"size": f"{width}x{height}", "window_hw": window, "frames": frames, "threads": threads,
+    return {"size": f"{width}x{height}", "window_hw": window, "frames": frames, "threads": threads, "fps": fps,
+            "opencv_threads": opencv_threads, "cpu": f"{cpu.model} ({', '.join(cpu.features) or 'no SIMD flags read'})",
             "stage_in_fusion_ms": stage, "stage_alone_ms": _pct(alone_ms), "fusion_ms": _pct(fusion_ms),
             "model_ms": _pct(model_ms), "stage_share_of_model_plus_fusion": stage["mean"] / total}
 
@@ -90,19 +98,27 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--sizes", nargs="+", default=["160x120", "320x240", "640x480"], help="camera sizes WxH")
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--warmup", type=int, default=10)
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads for the model")
+    p.add_argument("--opencv-threads", type=int, default=1, help="OpenCV threads (edge-run uses 1)")
+    p.add_argument("--fps", type=float, default=10.0, help="the flight's frame rate (the camera's)")
     p.add_argument("--style", default="suburban")
     p.add_argument("--seed", type=int, default=41)
     p.add_argument("--json", help="write the results here")
     a = p.parse_args(argv)
+    for name in ("frames", "threads", "opencv_threads"):
+        if getattr(a, name) < 1:
+            raise InputError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}")
+    if not (a.fps > 0 and a.warmup >= 0):
+        raise InputError(f"--fps must be > 0 and --warmup >= 0, got {a.fps} and {a.warmup}")
     results = []
     sizes = [parse_size(s) for s in a.sizes]          # all checked before the first (slow) render
     for w, h in sizes:
-        r = bench_size(w, h, a.frames, a.warmup, a.threads, a.style, a.seed)
+        r = bench_size(w, h, a.frames, a.warmup, a.threads, a.style, a.seed, a.fps, a.opencv_threads)
         results.append(r)
         s, f, m = r["stage_alone_ms"], r["fusion_ms"], r["model_ms"]
         i = r["stage_in_fusion_ms"]
-        print(f"{r['size']:>8s} (DIS window <= {r['window_hw'][0]}x{r['window_hw'][1]}): stage alone (every frame) "
+        print(f"{r['size']:>8s} at {r['fps']:g} frames/s (DIS window <= {r['window_hw'][0]}x{r['window_hw'][1]}): "
+              f"stage alone (every frame) "
               f"p50 {s['p50']:.2f} p90 {s['p90']:.2f} p99 {s['p99']:.2f} ms; in fusion (every "
               f"{FusionConfig().geometry_interval_s:g} s) mean {i['mean']:.2f} p50 {i['p50']:.2f} p90 {i['p90']:.2f} ms; "
               f"fusion with it p50 {f['p50']:.2f} ms, model p50 "

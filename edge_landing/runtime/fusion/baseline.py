@@ -51,6 +51,6 @@ def detectable_heights_m(pose: CameraPose, refs: list[CameraPose], probes: np.nd
         # The noise-floor model above favours the longest baseline, but past about half the range to the ground
         # the two views differ too much (anything off the plane, occlusions) and the flow fails: the measured
         # noise grows several-fold and so does the detectable height (docs/ARCHITECTURE.md §11).
-        rng = np.nanmedian(np.where(nx > 0, d / nx, np.nan) * np.sqrt(1.0 + xc[0] ** 2 + xc[1] ** 2))
+        rng = float(row_nanmedian((np.where(nx > 0, d / nx, np.nan) * np.sqrt(1.0 + xc[0] ** 2 + xc[1] ** 2))[None])[0])
     short = np.linalg.norm(t, axis=1) <= config.max_baseline_ratio * rng if math.isfinite(rng) else True
     return np.asarray(np.where((inside.mean(axis=1) >= config.min_overlap) & np.isfinite(det) & short, det, np.inf))

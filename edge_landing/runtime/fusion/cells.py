@@ -66,6 +66,13 @@ def _clearance(landable: np.ndarray, cell_m: float) -> np.ndarray:
     # A non-landable cell has distance 0, so d·cell - cell/√2 < 0 there and the clamp at 0 zeroes it: no mask
     # pass needed. In place on the transform's own float32 output: no per-frame temporaries.
     dist: np.ndarray = cv2.distanceTransform(landable.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    # The exact transform's distances are square roots of whole numbers of cells², but OpenCV's float arithmetic
+    # leaves up to ~4e-6 cells of error that varies from call to call on the same mask (measured: two
+    # different results in 50 identical calls), so replays differed in the last bit of a clearance. Rounding
+    # d² to its whole number gives the exact distance, the same every time.
+    np.square(dist, out=dist)
+    np.rint(dist, out=dist)
+    np.sqrt(dist, out=dist)
     np.multiply(dist, np.float32(cell_m), out=dist)
     np.subtract(dist, np.float32(cell_m / math.sqrt(2.0)), out=dist)
     np.maximum(dist, np.float32(0.0), out=dist)

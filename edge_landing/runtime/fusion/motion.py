@@ -80,6 +80,7 @@ class MotionStage:
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
         self._pix = (xx, yy)
         self._norm = ((xx - self.k_cv[0, 2]) / i.fx, (yy - self.k_cv[1, 2]) / i.fy)
+        self._norm_hw = np.stack(self._norm)                # 2×H×W: a window's slice is one copy
         self.last: Optional[ParallaxResult] = None
         self.last_reason = ""
         self._ground: Optional[tuple[float, float]] = None   # (time, NED down of the local ground last measured)
@@ -331,12 +332,12 @@ class MotionStage:
         h, w = self.size_hw
         in_ref = (qz > 0) & (ur >= 0) & (ur <= w - 1) & (vr >= 0) & (vr <= h - 1)
         k_inv = self._k_inv
-        xr = np.stack([(ur - self.k_cv[0, 2]) * k_inv[0, 0], (vr - self.k_cv[1, 2]) * k_inv[1, 1]]).reshape(2, -1)
-        xc = np.stack([self._norm[0][rs, cs], self._norm[1][rs, cs]]).reshape(2, -1)
-        hgt, gnorm, cross = parallax_height(xc.astype(np.float64), xr.astype(np.float64), rot, t, n, d)
+        # Normalised coordinates, H×W per component (2×H×W for the current frame's pixels).
+        xr = ((ur - self.k_cv[0, 2]) * k_inv[0, 0], (vr - self.k_cv[1, 2]) * k_inv[1, 1])
+        xc = self._norm_hw[:, rs, cs]
+        hgt, gnorm, cross = parallax_height(xc, xr, rot, t, n, d)
         f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
         shape = cur.shape
-        hgt, gnorm, cross = hgt.reshape(shape), gnorm.reshape(shape), cross.reshape(shape)
         # The residual across the epipolar direction is flow error only (parallax lies along it): its robust
         # spread is this pair's flow noise, used when above the configured floor.
         matched_ok = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error)
@@ -347,10 +348,9 @@ class MotionStage:
         # NED point of each pixel at its measured height (the plane point where the flow is not trusted). The
         # height may be negative (ground below the plane: the point is farther along its ray than the plane's).
         lam_scale = np.where(explained, np.clip(1.0 - np.where(explained, hgt, 0.0) / d, 0.05, 20.0), 1.0)
-        ned, nx = ned_points(pose, xc, lam_scale.reshape(-1))
-        ned = ned.reshape((3,) + shape)
-        near = (nx.reshape(shape) > 0) & (np.hypot(ned[0] - pose.position_ned_m[0],
-                                                   ned[1] - pose.position_ned_m[1]) <= cfg.max_range_m)
+        ned, nx = ned_points(pose, xc, lam_scale)
+        near = (nx > 0) & (np.hypot(ned[0] - pose.position_ned_m[0], ned[1] - pose.position_ned_m[1])
+                           <= cfg.max_range_m)
         reliable = near & explained
         with np.errstate(divide="ignore", invalid="ignore"):
             sigma_plane = d * (noise_px / f) / gnorm
@@ -375,9 +375,10 @@ class MotionStage:
             # The image pose's translation error moves the plane prediction along the parallax direction
             # (image_motion.plane_prediction_sigma): extra noise; its scale error ε (the height above ground)
             # makes heights read low by up to detect_sigmas · ε. Never easier than a telemetry pose.
-            g = t[:2, None] - xr * t[2]
-            pose_n = plane_prediction_sigma(xc.astype(np.float64), rot, t, n, d, image_pose.cov_ref_m2,
-                                            g).reshape(shape)
+            xr_flat = np.stack(xr).reshape(2, -1)
+            g = t[:2, None] - xr_flat * t[2]
+            pose_n = plane_prediction_sigma(xc.reshape(2, -1).astype(np.float64), rot, t, n, d,
+                                            image_pose.cov_ref_m2, g).reshape(shape)
             with np.errstate(divide="ignore", invalid="ignore"):
                 sigma_pose = np.maximum(d - ground, 0.1 * d) ** 2 / d * pose_n / gnorm
             margin = 1.0 / max(1e-3, 1.0 - cfg.detect_sigmas * image_pose.scale_sigma_rel)
@@ -387,7 +388,7 @@ class MotionStage:
         rng = np.sqrt(np.sum((ned - pose.position_ned_m[:, None, None]) ** 2, axis=0))
         resolved = patch_px * rng / f <= cfg.max_patch_footprint_m
         if cfg.overhang_check_m > 0:   # ground seen under a crown or eaves cannot confirm
-            resolved &= column_seen(pose, self.k_cv, (cs.start, rs.start), xc.reshape((2,) + shape), ned, reliable,
+            resolved &= column_seen(pose, self.k_cv, (cs.start, rs.start), xc, ned, reliable,
                                     cfg.overhang_check_m)
         detectable = np.where(reliable & resolved, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
         out_ned = np.where(near[None], ned, np.nan).astype(np.float32)

@@ -86,6 +86,7 @@ class GeometryGrid:
         self._w = np.zeros((2, s, s), np.float32)                # decayed weights: seen, high
         self._fused = np.zeros((2, s, s), np.float32)            # decayed Σ 1/σ², Σ h/σ² of the cell's heights
         self._time_s = None
+        self._box: Optional[tuple[int, int, int, int]] = None    # rows r0:r1, cols c0:c1 that ever held evidence
 
     def centre_on(self, north_m: float, east_m: float) -> None:
         """Move so that (north, east) is near the centre (same rule as fusion's TopDownGrid), keeping the overlap."""
@@ -98,6 +99,10 @@ class GeometryGrid:
             self._clear_base = _shift(self._clear_base, dr, dc, np.nan)
             self._w = np.stack([_shift(w, dr, dc, 0.0) for w in self._w])
             self._fused = np.stack([_shift(w, dr, dc, 0.0) for w in self._fused])
+            if self._box is not None:   # cell (r, c) moved to (r - dr, c - dc)
+                b = (max(self._box[0] - dr, 0), min(self._box[1] - dr, self.size),
+                     max(self._box[2] - dc, 0), min(self._box[3] - dc, self.size))
+                self._box = b if b[0] < b[1] and b[2] < b[3] else None
 
     def add(self, result: ParallaxResult) -> int:
         """Merge one frame's evidence; returns the number of cells it measured."""
@@ -115,6 +120,10 @@ class GeometryGrid:
             return 0
         r0, c0, det, high, suspect, mean_h = frame
         win = (slice(r0, r0 + det.shape[0]), slice(c0, c0 + det.shape[1]))
+        r1, c1 = r0 + det.shape[0], c0 + det.shape[1]
+        box = self._box
+        self._box = (r0, r1, c0, c1) if box is None else (min(box[0], r0), max(box[1], r1), min(box[2], c0),
+                                                          max(box[3], c1))
         measured = np.isfinite(det)
         best = self._det[win]
         expired = (t - self._det_t[win]) > self.memory_s
@@ -205,31 +214,38 @@ class GeometryGrid:
         return r0, c0, det_c, high, suspect, mean_h
 
     def view(self, north0_m: float, east0_m: float, shape: tuple[int, int], now_s: float) -> GeometryView:
-        """The evidence on a window of cells whose corner is (north0, east0) (cells outside: no evidence)."""
+        """The evidence on a window of cells whose corner is (north0, east0) (cells outside: no evidence).
+
+        Only the cells inside the box that has ever held evidence (``_box``) are computed; every other cell
+        of the window reads "never measured" (not clear, no obstacle, nothing detectable, no baseline).
+        """
         rows, cols = shape
         dr = int(round((north0_m - self.north0_m) / self.cell_m))
         dc = int(round((east0_m - self.east0_m) / self.cell_m))
-
-        def take(a: np.ndarray, fill: float) -> np.ndarray:
-            out = np.full((rows, cols), fill, a.dtype)
-            rs0, rs1 = max(dr, 0), min(dr + rows, self.size)
-            cs0, cs1 = max(dc, 0), min(dc + cols, self.size)
-            if rs0 < rs1 and cs0 < cs1:
-                out[rs0 - dr:rs1 - dr, cs0 - dc:cs1 - dc] = a[rs0:rs1, cs0:cs1]
-            return out
-
-        decay = 1.0 if self._time_s is None else math.exp(-max(now_s - self._time_s, 0.0) / self.memory_s)
-        seen = take(self._w[0], np.float32(0.0)) * decay
-        high_w = take(self._w[1], np.float32(0.0)) * decay
-        det = take(self._det, np.float32(np.inf))
-        det = np.where(now_s - take(self._det_t, -np.inf) <= self.memory_s, det, np.inf).astype(np.float32)
-        det, fused_high = self._fused_evidence(np.stack([take(f, np.float32(0.0)) for f in self._fused]), det)
-        obstacle = ((high_w > 0) & (high_w >= self.obstacle_vote_share * seen)) | fused_high
-        obstacle = cv2.dilate(obstacle.view(np.uint8), self._grow).astype(bool)
-        age = now_s - take(self._clear_t, -np.inf)
+        det = np.full((rows, cols), np.inf, np.float32)
+        high = np.zeros((rows, cols), dtype=bool)
+        age = np.full((rows, cols), np.inf)
+        base = np.full((rows, cols), np.nan, np.float32)
+        box = self._box
+        if box is not None:
+            # Grid cell (r, c) is window cell (r - dr, c - dc): the evidence box clipped to both.
+            r0, r1 = max(box[0], dr), min(box[1], dr + rows)
+            c0, c1 = max(box[2], dc), min(box[3], dc + cols)
+            if r0 < r1 and c0 < c1:
+                g = (slice(r0, r1), slice(c0, c1))
+                v = (slice(r0 - dr, r1 - dr), slice(c0 - dc, c1 - dc))
+                decay = 1.0 if self._time_s is None else math.exp(-max(now_s - self._time_s, 0.0) / self.memory_s)
+                seen = self._w[0][g] * decay
+                high_w = self._w[1][g] * decay
+                best = np.where(now_s - self._det_t[g] <= self.memory_s, self._det[g], np.inf).astype(np.float32)
+                det[v], fused_high = self._fused_evidence(self._fused[:, g[0], g[1]], best)
+                high[v] = ((high_w > 0) & (high_w >= self.obstacle_vote_share * seen)) | fused_high
+                since = now_s - self._clear_t[g]
+                age[v] = np.where(np.isfinite(since), since, np.inf)
+                base[v] = self._clear_base[g]
+        obstacle = cv2.dilate(high.view(np.uint8), self._grow).astype(bool)
         clear = (age <= self.memory_s) & ~obstacle
-        return GeometryView(now_s, self.obstacle_height_m, clear, obstacle, det,
-                            take(self._clear_base, np.float32(np.nan)), np.where(np.isfinite(age), age, np.inf))
+        return GeometryView(now_s, self.obstacle_height_m, clear, obstacle, det, base, age)
 
 
 def _shift(a: np.ndarray, dr: int, dc: int, fill: float) -> np.ndarray:

@@ -17,11 +17,16 @@ Derivation (normalised image coordinates, camera c = "1", camera r = "2"):
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Union
 
 import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude, Mount, ned_from_camera
+
+# Normalised image coordinates: a 2×... array, or its two components (x, y) as separate arrays.
+Coords = Union[np.ndarray, tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True)
@@ -53,39 +58,45 @@ def plane_homography(k: np.ndarray, cur: CameraPose, ref: CameraPose) -> tuple[n
     return k @ h_norm @ np.linalg.inv(k), rot, t, n, d
 
 
-def parallax_height(x_c: np.ndarray, x_r: np.ndarray, rot: np.ndarray, t: np.ndarray, n: np.ndarray, d: float
+def parallax_height(x_c: Coords, x_r: Coords, rot: np.ndarray, t: np.ndarray, n: np.ndarray, d: float
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Heights above the plane from matched normalised points (2×N each): (h, |g|, cross-epipolar residual).
+    """Heights above the plane from matched normalised points (2×... each): (h, |g|, cross-epipolar residual).
 
     ``x_r`` is where the current frame's point ``x_c`` was found in the reference frame. See the module
-    docstring for the derivation: r = x_r - π(H_e x_c) = s·g, h = d·s/(1+s).
+    docstring for the derivation: r = x_r - π(H_e x_c) = s·g, h = d·s/(1+s). Any trailing shape (2×N, 2×H×W);
+    float32 inputs are computed in float64. Written per component: a 3×3 product over tens of thousands of
+    points costs several times more as matrix products with stacked homogeneous coordinates.
     """
-    xh = np.vstack([x_c, np.ones((1, x_c.shape[1]), x_c.dtype)])
-    nx = n @ xh                                               # > 0: the ray meets the plane ahead
-    q = (rot + np.outer(t, n) / d) @ xh                       # H_e x_c (homogeneous, reference frame)
-    pred = q[:2] / q[2]
-    z0 = d / nx * q[2]                                        # reference depth of the plane point on this ray
-    g = (t[:2, None] - x_r * t[2]) / z0
-    g2 = np.einsum("ij,ij->j", g, g)
-    r = x_r - pred
+    x, y = np.asarray(x_c[0], np.float64), np.asarray(x_c[1], np.float64)
+    xr, yr = np.asarray(x_r[0], np.float64), np.asarray(x_r[1], np.float64)
+    he = rot + np.outer(t, n) / d
+    nx = n[0] * x + n[1] * y + n[2]                           # > 0: the ray meets the plane ahead
+    q = [he[i, 0] * x + he[i, 1] * y + he[i, 2] for i in range(3)]   # H_e x_c (homogeneous, reference frame)
     with np.errstate(invalid="ignore", divide="ignore"):
-        s = np.einsum("ij,ij->j", r, g) / g2
-        cross = np.abs(r[0] * g[1] - r[1] * g[0]) / np.sqrt(g2)
+        z0 = d / nx * q[2]                                    # reference depth of the plane point on this ray
+        gx, gy = (t[0] - xr * t[2]) / z0, (t[1] - yr * t[2]) / z0
+        g2 = gx * gx + gy * gy
+        rx, ry = xr - q[0] / q[2], yr - q[1] / q[2]
+        s = (rx * gx + ry * gy) / g2
+        gnorm = np.sqrt(g2)
+        cross = np.abs(rx * gy - ry * gx) / gnorm
         h = d * s / (1.0 + s)
     bad = ~(nx > 0) | ~(z0 > 0) | ~(g2 > 0)
     h[bad] = np.nan
-    return h, np.sqrt(np.where(bad, 0.0, g2)), cross
+    gnorm[bad] = 0.0
+    return h, gnorm, cross
 
 
 def ned_points(pose: CameraPose, xc: np.ndarray, lam_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """NED points (3×N) of normalised pixels ``xc`` (2×N) on the plane ``agl_m`` below, their ray depths scaled by
-    ``lam_scale``, and n^T x per pixel (> 0: the ray meets the plane ahead)."""
+    """NED points (3×...) of normalised pixels ``xc`` (2×..., e.g. 2×N or 2×H×W) on the plane ``agl_m`` below, their
+    ray depths scaled by ``lam_scale`` (shaped as one component of ``xc``), and n^T x per pixel (> 0: the ray
+    meets the plane ahead)."""
     n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
     nx = n[0] * xc[0] + n[1] * xc[1] + n[2]
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = np.where(nx > 0, pose.agl_m / nx, np.nan) * lam_scale
     r = pose.r_nc
-    pts = np.empty((3, xc.shape[1]), np.float64)
+    pts = np.empty((3,) + tuple(xc.shape[1:]), np.float64)
     for i in range(3):
         pts[i] = (r[i, 0] * xc[0] + r[i, 1] * xc[1] + r[i, 2]) * lam + pose.position_ned_m[i]
     return pts, nx
@@ -109,6 +120,33 @@ def _design(dn: np.ndarray, de: np.ndarray) -> np.ndarray:
     return np.stack([np.ones_like(dn), dn, de, dn * dn, dn * de, de * de], axis=-1)
 
 
+def _percentile(values: np.ndarray, q: float) -> float:
+    """``np.percentile(values, 100 q)`` (linear interpolation, numpy's rounding) by partition, not a full sort."""
+    n = values.size
+    pos = q * (n - 1)
+    lo = int(math.floor(pos))
+    hi = min(lo + 1, n - 1)
+    part = np.partition(values, (lo, hi))
+    a, b, t = float(part[lo]), float(part[hi]), pos - lo
+    return b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
+
+
+def _least_squares(a: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients by the normal equations: a 6×6 solve costs a fraction of an SVD of the whole
+    N×6 design matrix. Falls back to the SVD when the normal equations are ill-conditioned (points along one
+    line, or a patch too small to pin the quadratic terms), where squaring the condition number would lose
+    the digits the SVD keeps."""
+    ata, ath = a.T @ a, a.T @ h
+    try:
+        sol: np.ndarray = np.linalg.solve(ata, ath)
+        if np.all(np.isfinite(sol)) and np.linalg.cond(ata) < 1e12:
+            return sol
+    except np.linalg.LinAlgError:
+        pass
+    sol, *_ = np.linalg.lstsq(a, h, rcond=None)
+    return sol
+
+
 def fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndarray, here: np.ndarray,
                 max_points: int = 3000) -> np.ndarray:
     """Robust quadratic surface through the ground's heights (coefficients in 100 m units).
@@ -126,7 +164,7 @@ def fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndar
     dn = (ned[0].reshape(-1)[idx] - here[0]) / 100.0
     de = (ned[1].reshape(-1)[idx] - here[1]) / 100.0
     a = _design(dn, de)
-    coef[0] = float(np.percentile(h, 10))
+    coef[0] = _percentile(h, 0.1)
     for window in (3.0, 1.5, 0.6):
         res = h - a @ coef
         # Asymmetric: what stands out above the surface is left out sooner than what lies below it, so a
@@ -134,8 +172,7 @@ def fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndar
         inl = (res >= -window) & (res <= 0.3 * window)
         if inl.sum() < 30:
             break
-        sol, *_ = np.linalg.lstsq(a[inl], h[inl], rcond=None)
-        coef = sol
+        coef = _least_squares(a[inl], h[inl])
     return coef
 
 
