@@ -46,6 +46,9 @@ def test_numbers_out_of_range_are_refused(tmp_path, capsys):
     for flag, value in (("--iterations", "0"), ("--iterations", "-1"), ("--max-seconds", "0"), ("--height", "0")):
         one_line_error(capsys, bench_main, ["--quick", "--models", "safeuav-small", flag, value], flag)
     one_line_error(capsys, bench_main, ["--quick", "--calib", str(tmp_path / "nowhere")], "does not exist")
+    from edge_landing.benchmarks.bench_motion import main as motion_main
+    for flag, value in (("--fps", "0"), ("--opencv-threads", "0"), ("--frames", "0")):
+        one_line_error(capsys, motion_main, ["--sizes", "640x480", flag, value], flag)   # before any render
 
 
 def test_train_refuses_bad_sizes_steps_output_and_resume(tmp_path, capsys):

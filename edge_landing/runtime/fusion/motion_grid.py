@@ -92,17 +92,18 @@ class GeometryGrid:
         """Move so that (north, east) is near the centre (same rule as fusion's TopDownGrid), keeping the overlap."""
         (self.north0_m, self.east0_m), (dr, dc) = recentre(self.north0_m, self.east0_m, north_m, east_m, self.size,
                                                            self.cell_m)
-        if dr or dc:
+        # Without evidence every array holds its "never measured" fill: nothing to move.
+        if (dr or dc) and self._box is not None:
             self._det = _shift(self._det, dr, dc, np.inf)
             self._det_t = _shift(self._det_t, dr, dc, -np.inf)
             self._clear_t = _shift(self._clear_t, dr, dc, -np.inf)
             self._clear_base = _shift(self._clear_base, dr, dc, np.nan)
             self._w = np.stack([_shift(w, dr, dc, 0.0) for w in self._w])
             self._fused = np.stack([_shift(w, dr, dc, 0.0) for w in self._fused])
-            if self._box is not None:   # cell (r, c) moved to (r - dr, c - dc)
-                b = (max(self._box[0] - dr, 0), min(self._box[1] - dr, self.size),
-                     max(self._box[2] - dc, 0), min(self._box[3] - dc, self.size))
-                self._box = b if b[0] < b[1] and b[2] < b[3] else None
+            # Cell (r, c) moved to (r - dr, c - dc).
+            b = (max(self._box[0] - dr, 0), min(self._box[1] - dr, self.size),
+                 max(self._box[2] - dc, 0), min(self._box[3] - dc, self.size))
+            self._box = b if b[0] < b[1] and b[2] < b[3] else None
 
     def add(self, result: ParallaxResult) -> int:
         """Merge one frame's evidence; returns the number of cells it measured."""
