@@ -211,3 +211,38 @@ def test_ground_seen_under_an_overhang_is_not_seen_from_above():
     below = np.all(ned == ground, axis=0) & (np.hypot(ground[0] - target[0], ground[1] - target[1]) <= 1.9)
     assert below.sum() >= 10 and open_seen[below].all() and not seen[below].any()
     assert seen[88, 24] and seen[-1, 48]                 # beside the crown, and in front of it
+
+
+def test_cell_recall_tells_obstacles_at_a_step_from_the_middle_of_a_wide_roof():
+    """The benchmark's per-cell recall counts every cell standing 1 m above the terrain as an obstacle; the middle of
+    a wide flat roof has no step anywhere near it (geometry measures heights above the local ground, and the safety
+    judge accepts it too), so obstacles at a step are also counted on their own."""
+    from types import SimpleNamespace
+
+    from edge_landing.benchmarks.lying_model import cell_recall
+    from edge_landing.runtime.fusion.motion_grid import GeometryView
+
+    world = _flat_world([[0.0, 0.0, 10.0, 10.0, 3.0], [15.0, -15.0, 1.0, 1.0, 1.5]])   # a 20 m roof, a 2 m car
+    size, cell = 80, 0.5
+    grid = SimpleNamespace(north0_m=-20.0, east0_m=-20.0, cell_m=cell)
+    centres = -20.0 + (np.arange(size) + 0.5) * cell
+    north, east = np.meshgrid(centres, centres, indexing="ij")
+
+    def counts(measured: np.ndarray) -> tuple[int, ...]:
+        det = np.where(measured, np.float32(0.3), np.float32(np.inf))
+        full = np.ones((size, size), bool)
+        geo = GeometryView(0.0, 0.5, full, full, det, np.full((size, size), np.nan, np.float32), np.zeros((size, size)))
+        out = cell_recall(world, SimpleNamespace(geometry=geo, grid=grid), 40.0)
+        assert out is not None
+        return out
+
+    assert counts(np.zeros((size, size), bool)) == (0,) * 8             # nothing measured: every count, as zeros
+    car = (np.abs(north - 15.0) < 1.0) & (np.abs(east + 15.0) < 1.0)
+    tall, hit, *_, step, step_hit = counts(car)
+    assert tall == hit == step == step_hit == int(car.sum()) == 16     # every car cell stands at a step
+    middle = (np.abs(north) < 7.0) & (np.abs(east) < 7.0)
+    tall, hit, *_, step, step_hit = counts(middle)
+    assert tall == hit == int(middle.sum()) and step == step_hit == 0  # no step within 1.5 m of the roof's middle
+    rim = (np.abs(north) < 10.0) & (np.abs(east) < 10.0) & ~((np.abs(north) < 8.0) & (np.abs(east) < 8.0))
+    tall, _, *_, step, _ = counts(rim)
+    assert tall == int(rim.sum()) and 0.5 * tall < step < tall          # the rim's outer cells see the drop

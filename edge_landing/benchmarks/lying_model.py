@@ -76,17 +76,20 @@ class _Shipped:
 
 
 def cell_recall(world: Any, fuser: LandingFuser, agl_m: float, min_height_m: float = 1.0, open_radius_m: float = 1.5,
-                origin_ne_m: tuple[float, float] = (0.0, 0.0)) -> Optional[tuple[int, int, int, int, int, int]]:
+                origin_ne_m: tuple[float, float] = (0.0, 0.0)) -> Optional[tuple[int, ...]]:
     """Geometry alone, per cell, at 30-60 m AGL: among the cells of the fusion grid it measured to
     ``min_height_m`` or better within its memory (detectable height <= 1 m): (obstacle cells (world height >=
     1 m at the cell centre), of them marked obstacle, flat cells (< 0.05 m), of them marked, open flat cells
-    (nothing >= 0.05 m within ``open_radius_m``: beyond the 1 m growth around obstacles), of them marked)."""
+    (nothing >= 0.05 m within ``open_radius_m``: beyond the 1 m growth around obstacles), of them marked,
+    obstacle cells at a step (something at least ``min_height_m`` lower within ``open_radius_m``: cars, trees,
+    walls, roof edges; not the middle of a wide roof, which is a flat surface with no step in sight), of them
+    marked)."""
     geo, view = fuser.geometry, fuser.grid
     if geo is None or view is None or not 30.0 <= agl_m <= 60.0:
         return None
     measured = np.isfinite(geo.detectable_m) & (geo.detectable_m <= min_height_m)
     if not measured.any():
-        return (0, 0, 0, 0, 0, 0)
+        return (0,) * 8
     rows, cols = np.nonzero(measured)
     north = origin_ne_m[0] + view.north0_m + (rows + 0.5) * view.cell_m   # origin: the vehicle, without position
     east = origin_ne_m[1] + view.east0_m + (cols + 0.5) * view.cell_m
@@ -98,12 +101,13 @@ def cell_recall(world: Any, fuser: LandingFuser, agl_m: float, min_height_m: flo
     h = height(north, east)
     tall, flat = h >= min_height_m, h < 0.05
     ring = np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False)
-    around = np.max([height(north + r * np.cos(a), east + r * np.sin(a)) for a in ring
-                     for r in (0.5 * open_radius_m, open_radius_m)], axis=0)
-    open_flat = flat & (around < 0.05)
+    ring_h = np.array([height(north + r * np.cos(a), east + r * np.sin(a)) for a in ring
+                       for r in (0.5 * open_radius_m, open_radius_m)])
+    open_flat = flat & (ring_h.max(axis=0) < 0.05)
+    at_step = tall & (h - ring_h.min(axis=0) >= min_height_m)
     marked = geo.obstacle[rows, cols]
     return (int(tall.sum()), int((marked & tall).sum()), int(flat.sum()), int((marked & flat).sum()),
-            int(open_flat.sum()), int((marked & open_flat).sum()))
+            int(open_flat.sum()), int((marked & open_flat).sum()), int(at_step.sum()), int((marked & at_step).sum()))
 
 
 def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
@@ -129,7 +133,7 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
                       "model": _Shipped(intr, mount) if name == "shipped" else None}
     stats: dict[str, Any] = {name: {kind: {"targets": 0, "safe": 0, "failures": []} for kind in ("geometry", "sent", "network")}
              for name in cfg.models}
-    recall = {name: [0] * 6 for name in cfg.models}
+    recall = {name: [0] * 8 for name in cfg.models}
     geo_ms: list[float] = []
     trace = open(cfg.trace, "w") if cfg.trace else None
     n_app, n_hov = int(round(cfg.frames * 0.4)), int(round(cfg.frames * 0.2))   # sim.flight's phases
@@ -201,9 +205,10 @@ def _summary(result: dict[str, Any]) -> str:
             share = st["safe"] / st["targets"] if st["targets"] else math.nan
             lines.append(f"{name:8s} {kind:9s} targets on {st['targets']}/{n} frames ({100 * st['targets'] / n:.0f} %), "
                          f"safe {st['safe']}/{st['targets']} ({100 * share:.1f} %)")
-        tall, hit, flat, fa, op, fo = result["recall"][name]
+        tall, hit, flat, fa, op, fo, step, sh = result["recall"][name]
         lines.append(f"{name:8s} geometry cells (30-60 m AGL, measured to <= 1 m): obstacles >= 1 m marked "
-                     f"{hit}/{tall} ({100 * hit / max(tall, 1):.1f} %), flat cells marked {fa}/{flat} "
+                     f"{hit}/{tall} ({100 * hit / max(tall, 1):.1f} %), of them at a >= 1 m step within 1.5 m "
+                     f"{sh}/{step} ({100 * sh / max(step, 1):.1f} %), flat cells marked {fa}/{flat} "
                      f"({100 * fa / max(flat, 1):.1f} %), open flat cells (nothing within 1.5 m) marked {fo}/{op} "
                      f"({100 * fo / max(op, 1):.1f} %)")
     lines.append(f"geometry stage p50 {result['geometry_ms_p50']:.2f} ms per frame (inside fusion)")
