@@ -5,8 +5,8 @@ size, then times, on the same frames: the motion stage alone (``MotionStage.upda
 plane warp, DIS on the window cropped around the network's spot, heights), the whole fusion with it
 (``LandingFuser.update`` with the image) and the shipped model's inference (``--threads`` threads), after a
 warm-up. Percentiles are over frames. Thread pools as edge-run sets them (pipeline.threads): OpenCV at
-``--opencv-threads`` (edge-run: 1), numpy's BLAS at one thread. Left at its default, OpenBLAS's idle threads spin
-after every small matrix product and take a core from OpenCV's DIS (measured here: 2-3 ms more per run).
+``--opencv-threads`` (edge-run: 1), numpy's BLAS at one thread: left at its default, OpenBLAS's idle threads spin
+after every small matrix product and take a core from OpenCV's DIS and from the model.
 The stage runs every ``geometry_interval_s`` of flight time, so its cost per frame depends on the camera's rate
 (``--fps``, the flight's frame rate): a 30 frames/s camera pays it on one frame in six, 10 frames/s on one in two.
 
@@ -83,11 +83,10 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
         if k >= warmup:
             alone_ms.append(1e3 * (time.perf_counter() - t0))
     window = list(alone.config.window_hw)
-    cpu = cpu_features()
     # Shares of means: the stage runs every geometry_interval_s, so its p50 over frames says little alone.
     stage, total = _pct(stage_ms), float(np.mean(np.asarray(fusion_ms) + np.asarray(model_ms)))
     return {"size": f"{width}x{height}", "window_hw": window, "frames": frames, "threads": threads, "fps": fps,
-            "opencv_threads": opencv_threads, "cpu": f"{cpu.model} ({', '.join(cpu.features) or 'no SIMD flags read'})",
+            "opencv_threads": opencv_threads, "cpu": cpu_features().summary(),
             "stage_in_fusion_ms": stage, "stage_alone_ms": _pct(alone_ms), "fusion_ms": _pct(fusion_ms),
             "model_ms": _pct(model_ms), "stage_share_of_model_plus_fusion": stage["mean"] / total}
 

@@ -74,14 +74,11 @@ class GeometryConfirmation:
         self._last_run_s: Optional[float] = None
         self._frame: tuple[str, int] = (POSE_TELEMETRY, 0)   # pose source and odometry epoch of ``grid``
         self._image_posed = False                             # this frame's pose came from the images
-        # The last confirmed_view: (fusion view, geometry view, use_hvo, result); both views are snapshots.
-        self._confirmed: Optional[tuple[GridView, GeometryView, bool, GridView]] = None
 
     def reset(self) -> None:
         self.grid.clear()
         self.motion.reset()
         self.view, self.note, self._last_run_s = None, "", None
-        self._confirmed = None
 
     def run(self, view: Optional[GridView], image: Optional[np.ndarray], state: Optional[VehicleState],
             position: Optional[np.ndarray], t_cap: float, focus: Optional[np.ndarray]) -> Optional[GeometryView]:
@@ -151,17 +148,12 @@ class GeometryConfirmation:
         flat-lying model of benchmarks/lying_model.py) leaves geometry alone, which stayed all safe there."""
         if self.view is None:
             return view
-        cached = self._confirmed
-        if cached is not None and cached[0] is view and cached[1] is self.view and cached[2] == use_hvo:
-            return cached[3]      # asked again for the same frame (the spot choice, then the reason for none)
         allowed = view.landable
         if use_hvo and self.config.confirm_on_horizontal:
             with np.errstate(invalid="ignore"):
                 allowed = allowed | (view.observed & (view.horizontal_share >= self.config.min_horizontal_share))
         landable = allowed & self.view.clear
-        out = replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
-        self._confirmed = (view, self.view, use_hvo, out)
-        return out
+        return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
 
     def evidence(self) -> str:
         out = EVIDENCE_GEOMETRY
@@ -174,16 +166,17 @@ class GeometryConfirmation:
             out = f"{out}; rain streaks filled in ({100 * last.rain_share:.0f} % of the window)"
         return out if not self.note else f"{out}; {self.note}"
 
-    def unconfirmed_reason(self, proposal: Choice, view: Optional[GridView], position: Optional[np.ndarray],
-                           use_hvo: bool = True) -> str:
-        """Why the network's spot is not sent: what geometry knows about its cell, and the best confirmed disc."""
+    def unconfirmed_reason(self, proposal: Choice, view: Optional[GridView], confirmed: Optional[GridView]) -> str:
+        """Why the network's spot is not sent: what geometry knows about its cell, and the best confirmed disc.
+
+        ``confirmed`` is this frame's :meth:`confirmed_view` of ``view`` (None when geometry had no view)."""
         cfg, geo = self.config, self.view
-        if geo is None or view is None:
+        if geo is None or view is None or confirmed is None:
             return f"unconfirmed: {self.note}"
         cell = view.cell_of(proposal.north_m, proposal.east_m)
         if cell is None:
             return "unconfirmed: spot outside the geometry grid"
-        best = float(self.confirmed_view(view, use_hvo).clearance_m.max())
+        best = float(confirmed.clearance_m.max())
         tail = f"; best confirmed clearance {best:.1f} m < {cfg.required_clearance_m:.1f} m"
         tail += f" ({self.note})" if self.note else ""
         if geo.obstacle[cell]:

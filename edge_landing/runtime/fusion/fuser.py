@@ -225,6 +225,7 @@ class LandingFuser:
         geo = self._confirm.run(self._view, image, state, position, t_cap, focus)
         timings["geometry"] = time.perf_counter() - t_geo
         self._tracked = None if proposal is None else KeptSpot(proposal.north_m, proposal.east_m, t_cap)
+        confirmed_view = None
         if geo is not None:
             # Geometry-clear ground the network does not object to (fusion.confirm.confirmed_view), with or
             # without a network spot of its own.
@@ -237,7 +238,7 @@ class LandingFuser:
         if proposal is None:
             best = float(self._view.clearance_m.max())
             return none(f"no safe spot: best clearance {best:.2f} m < required {cfg.required_clearance_m:.2f} m")
-        why = self._confirm.unconfirmed_reason(proposal, self._view, position, hvo_h is not None)
+        why = self._confirm.unconfirmed_reason(proposal, self._view, confirmed_view)
         if cfg.allow_unconfirmed:
             target = self._make_target(pred, proposal, attitude, position, hvo_h is not None, timings,
                                        f"{EVIDENCE_NETWORK_ONLY} ({why})")

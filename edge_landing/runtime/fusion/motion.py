@@ -79,8 +79,7 @@ class MotionStage:
         self._dis.setPatchStride(config.dis_patch_stride_px)
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
         self._pix = (xx, yy)
-        self._norm = ((xx - self.k_cv[0, 2]) / i.fx, (yy - self.k_cv[1, 2]) / i.fy)
-        self._norm_hw = np.stack(self._norm)                # 2×H×W: a window's slice is one copy
+        self._norm = np.stack([(xx - self.k_cv[0, 2]) / i.fx, (yy - self.k_cv[1, 2]) / i.fy])   # 2×H×W, normalised
         self.last: Optional[ParallaxResult] = None
         self.last_reason = ""
         self._ground: Optional[tuple[float, float]] = None   # (time, NED down of the local ground last measured)
@@ -334,7 +333,7 @@ class MotionStage:
         k_inv = self._k_inv
         # Normalised coordinates, H×W per component (2×H×W for the current frame's pixels).
         xr = ((ur - self.k_cv[0, 2]) * k_inv[0, 0], (vr - self.k_cv[1, 2]) * k_inv[1, 1])
-        xc = self._norm_hw[:, rs, cs]
+        xc = self._norm[:, rs, cs]
         hgt, gnorm, cross = parallax_height(xc, xr, rot, t, n, d)
         f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
         shape = cur.shape

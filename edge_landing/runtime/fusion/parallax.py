@@ -17,7 +17,6 @@ Derivation (normalised image coordinates, camera c = "1", camera r = "2"):
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Union
 
@@ -120,33 +119,6 @@ def _design(dn: np.ndarray, de: np.ndarray) -> np.ndarray:
     return np.stack([np.ones_like(dn), dn, de, dn * dn, dn * de, de * de], axis=-1)
 
 
-def _percentile(values: np.ndarray, q: float) -> float:
-    """``np.percentile(values, 100 q)`` (linear interpolation, numpy's rounding) by partition, not a full sort."""
-    n = values.size
-    pos = q * (n - 1)
-    lo = int(math.floor(pos))
-    hi = min(lo + 1, n - 1)
-    part = np.partition(values, (lo, hi))
-    a, b, t = float(part[lo]), float(part[hi]), pos - lo
-    return b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
-
-
-def _least_squares(a: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """Least-squares coefficients by the normal equations: a 6×6 solve costs a fraction of an SVD of the whole
-    N×6 design matrix. Falls back to the SVD when the normal equations are ill-conditioned (points along one
-    line, or a patch too small to pin the quadratic terms), where squaring the condition number would lose
-    the digits the SVD keeps."""
-    ata, ath = a.T @ a, a.T @ h
-    try:
-        sol: np.ndarray = np.linalg.solve(ata, ath)
-        if np.all(np.isfinite(sol)) and np.linalg.cond(ata) < 1e12:
-            return sol
-    except np.linalg.LinAlgError:
-        pass
-    sol, *_ = np.linalg.lstsq(a, h, rcond=None)
-    return sol
-
-
 def fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndarray, here: np.ndarray,
                 max_points: int = 3000) -> np.ndarray:
     """Robust quadratic surface through the ground's heights (coefficients in 100 m units).
@@ -164,7 +136,7 @@ def fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndar
     dn = (ned[0].reshape(-1)[idx] - here[0]) / 100.0
     de = (ned[1].reshape(-1)[idx] - here[1]) / 100.0
     a = _design(dn, de)
-    coef[0] = _percentile(h, 0.1)
+    coef[0] = float(np.percentile(h, 10))
     for window in (3.0, 1.5, 0.6):
         res = h - a @ coef
         # Asymmetric: what stands out above the surface is left out sooner than what lies below it, so a
@@ -172,7 +144,8 @@ def fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndar
         inl = (res >= -window) & (res <= 0.3 * window)
         if inl.sum() < 30:
             break
-        coef = _least_squares(a[inl], h[inl])
+        sol, *_ = np.linalg.lstsq(a[inl], h[inl], rcond=None)
+        coef = sol
     return coef
 
 
