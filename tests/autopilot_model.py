@@ -8,7 +8,8 @@ link and the sim-follow camera each get the full telemetry stream and may send c
 What it models, from ArduPilot's documented precision-landing behaviour (docs/closed_loop.md lists it):
 - HEARTBEAT 1 Hz (MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA, ArduCopter mode numbers); ATTITUDE,
   GLOBAL_POSITION_INT (relative_alt), LOCAL_POSITION_NED, DISTANCE_SENSOR (orientation 25, cm) at 20 Hz with
-  ``time_boot_ms``; COMMAND_ACK for every COMMAND_LONG; STATUSTEXT on estimator events.
+  ``time_boot_ms``; EKF_STATUS_REPORT (a healthy EKF with GPS) with them; COMMAND_ACK for every COMMAND_LONG;
+  STATUSTEXT on estimator events.
 - LANDING_TARGET: frame BODY_FRD (12) or LOCAL_FRD only ("Plnd: Frame not supported" otherwise),
   ``position_valid = 1`` and ``distance > 0``; only the direction (x, y, z)/|.| is used, rotated by the attitude
   of ``plnd_lag_s`` ago; the range comes from its own height above ground (PLND_EST_TYPE 0, raw sensor).
@@ -160,6 +161,10 @@ class AutopilotModel:
             *(int(v * 100) for v in self.vel), int(math.degrees(self.yaw) % 360 * 100)))
         self._send_all(m.MAVLink_distance_sensor_message(t, 20, 10000, int(round(max(agl, 0.0) * 100)),
                                                          m.MAV_DISTANCE_SENSOR_LASER, 0, 25, 0))
+        # A healthy EKF3 with GPS (ArduPilot streams EKF_STATUS_REPORT with its extended status): edge-run believes it.
+        healthy = (m.EKF_ATTITUDE | m.EKF_VELOCITY_HORIZ | m.EKF_VELOCITY_VERT | m.EKF_POS_HORIZ_REL
+                   | m.EKF_POS_HORIZ_ABS | m.EKF_POS_VERT_ABS | m.EKF_PRED_POS_HORIZ_REL | m.EKF_PRED_POS_HORIZ_ABS)
+        self._send_all(m.MAVLink_ekf_status_report_message(healthy, 0.05, 0.05, 0.05, 0.05, 0.0))
 
     # -- MAVLink in -----------------------------------------------------------------------------------
     def receive(self, now_s: float) -> None:

@@ -19,8 +19,9 @@ from edge_landing.benchmarks import closed_loop  # noqa: E402
 from edge_landing.benchmarks.closed_loop_judge import path_hits, until_touchdown  # noqa: E402
 from edge_landing.benchmarks.landing_truth import TruthConfig, check_target  # noqa: E402
 from edge_landing.runtime.core.camera import Attitude  # noqa: E402
+from edge_landing.runtime.io.grabber import Grabber  # noqa: E402
 from edge_landing.runtime.io.mavlink_link import load_mavutil  # noqa: E402
-from edge_landing.runtime.io.sources import Grabber, SourceConfig, SourceKind  # noqa: E402
+from edge_landing.runtime.io.sources import SourceConfig, SourceKind  # noqa: E402
 from edge_landing.sim.follow import HOME_CLEAR_RADIUS_M, FollowReader, FollowSpec, place_home  # noqa: E402
 from tests.autopilot_model import AutopilotModel, ModelConfig, PrecLand  # noqa: E402
 

@@ -17,8 +17,9 @@ from edge_landing.cli.run import main
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, Frame, Prediction, Target, VehicleState
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
-from edge_landing.runtime.io.sources import Grabber, SourceConfig, SourceKind
+from edge_landing.runtime.io.sources import SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import ClockOffset, TelemetryBuffer, TelemetryConfig
 from edge_landing.runtime.pipeline import Continuity, ContinuityConfig, FrameCheck, StageTimes
 from tests.fake_autopilot import FakeAutopilot
@@ -374,9 +375,9 @@ def test_targets_leave_expressed_at_the_newest_pose():
     from edge_landing.runtime.pipeline.loop import Pipeline, PipelineOptions
 
     buf = TelemetryBuffer()
-    for k in range(5):                                               # 10 Hz up to t = 10.4 s
+    for k in range(5):                                               # 10 Hz up to t = 10.4 s, turning at 225°/s
         t = 10.0 + 0.1 * k
-        yaw = 0.0 if t < 10.25 else math.pi / 2
+        yaw = math.pi / 2 * k / 4
         buf.add_attitude(0.0, 0.0, yaw, arrival_s=t)
         buf.add_position(0.0 if t < 10.25 else 2.0, 0.0, -30.0, arrival_s=t)
         buf.add_relative_alt(30.0, arrival_s=t)
@@ -386,7 +387,7 @@ def test_targets_leave_expressed_at_the_newest_pose():
     target = Target(1, 10.0, True, position_body_frd_m=np.array([10.0, 0.0, 30.0]), position_ned_m=spot,
                     range_m=math.hypot(10.0, 30.0), clearance_m=3.0, confidence=0.9, evidence=EVIDENCE_GEOMETRY)
     holder = SimpleNamespace(telemetry=buf, options=PipelineOptions(mount=Mount()))
-    out, pose_time_s = Pipeline._at_newest_pose(holder, target)      # type: ignore[arg-type]
+    out, pose_time_s = Pipeline._at_newest_pose(holder, target, buf.state_at(10.0))  # type: ignore[arg-type]
     assert pose_time_s == pytest.approx(10.4)
     np.testing.assert_allclose(out.position_body_frd_m, [0.0, -8.0, 30.0], atol=1e-9)   # 8 m ahead = to its left
     assert out.range_m == pytest.approx(math.hypot(8.0, 30.0)) and out.capture_time_s == 10.0
@@ -397,4 +398,4 @@ def test_targets_leave_expressed_at_the_newest_pose():
     assert out.angle_x_rad == pytest.approx(math.atan2(-8.0, 30.0 / math.sqrt(2.0)), abs=1e-9)
     assert out.angle_y_rad == pytest.approx(math.atan2(30.0 / math.sqrt(2.0), 30.0 / math.sqrt(2.0)), abs=1e-9)
     no_position = Target(2, 10.0, True, position_body_frd_m=np.array([10.0, 0.0, 30.0]), clearance_m=3.0)
-    assert Pipeline._at_newest_pose(holder, no_position) == (no_position, 10.0)  # type: ignore[arg-type]
+    assert Pipeline._at_newest_pose(holder, no_position, None) == (no_position, 10.0)  # type: ignore[arg-type]

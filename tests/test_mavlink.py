@@ -83,7 +83,8 @@ def test_px4_local_ned_target_agrees_with_the_autopilot_telemetry(assets, yaw_de
     targets = ap.of_type("LANDING_TARGET")
     assert len(targets) >= 5
     requested = {int(c.param1) for c in ap.of_type("COMMAND_LONG") if c.command == 511}  # SET_MESSAGE_INTERVAL
-    assert requested == {30, 33, 132, 32}  # ATTITUDE, GLOBAL_POSITION_INT, DISTANCE_SENSOR, LOCAL_POSITION_NED
+    # ATTITUDE, GLOBAL_POSITION_INT, DISTANCE_SENSOR, LOCAL_POSITION_NED, EKF_STATUS_REPORT, ESTIMATOR_STATUS
+    assert requested == {30, 33, 132, 32, 193, 230}
     for t in targets:
         assert t.frame == 1 and t.position_valid == 1 and t.type == 3
         rel = np.array([t.x - pos[0], t.y - pos[1], t.z - pos[2]])

@@ -29,8 +29,9 @@ EFFECTS = sample_effects(np.random.default_rng(0), EffectOverrides(haze_per_m=0.
                                                                     noise_sigma=0.01, exposure_ev=0.0))
 
 
-def _flat_world(box_rows: list, seed: int = 0):
-    """A flat grass field (down = 0) with boxes (north, east, half_n, half_e, height_m), tops grassed.
+def _flat_world(box_rows: list, seed: int = 0, side=None, tint=(0.6, 0.2, 0.2), top=None, style=None):
+    """A flat grass field (down = 0) with boxes (north, east, half_n, half_e, height_m), by default red sides
+    and grassed tops (``side``/``tint``/``top``/``style``: other materials, e.g. facades and flat roofs).
 
     Tops are textured on purpose: flow cannot measure a textureless surface (it interpolates it from its
     surroundings and under-reads its height), a limit of motion geometry stated in its docstring.
@@ -38,9 +39,9 @@ def _flat_world(box_rows: list, seed: int = 0):
     n = int(round(2 * WORLD_HALF_SIZE_M / 10.0)) + 1
     terrain = Terrain(z=np.zeros((n, n)), origin_m=-WORLD_HALF_SIZE_M, step_m=10.0)
     b = np.asarray(box_rows, np.float64).reshape(-1, 5)
-    part = boxes(b[:, 0], b[:, 1], b[:, 2], b[:, 3], 0.0, 0.3, -b[:, 4], Material.CAR_PAINT,
-                 np.array([0.6, 0.2, 0.2], np.float32), top_material=Material.GRASS)
-    return _finish(sim.Style.SUBURBAN, seed, part, terrain, GroundMap(Material.GRASS), np.zeros((0, 2)))
+    part = boxes(b[:, 0], b[:, 1], b[:, 2], b[:, 3], 0.0, 0.3, -b[:, 4], side or Material.CAR_PAINT,
+                 np.array(tint, np.float32), top_material=top or Material.GRASS)
+    return _finish(style or sim.Style.SUBURBAN, seed, part, terrain, GroundMap(Material.GRASS), np.zeros((0, 2)))
 
 
 def _frames(world, positions, yaw: float = 0.0, effects=EFFECTS):

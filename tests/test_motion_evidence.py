@@ -153,8 +153,18 @@ def test_the_stage_runs_every_geometry_interval():
         r = renderer.render(p, Attitude(), EFFECTS, rng)
         target = fuser.update(lying_prediction(INTR, MOUNT, state, k), state, 0.1 * k, r.rgb)
         ran.append("runs every" not in (target.reason + target.evidence))
+        assert fuser.geometry_ran == ran[-1]
     assert ran == [True, False] * 4
     assert math.isclose(FusionConfig().geometry_interval_s, 0.2)
+    # A frame that stops before geometry (an invalid prediction, due for a run by time) ran nothing, even
+    # right after a frame that did.
+    from edge_landing.runtime.core.messages import Prediction
+
+    state = VehicleState(0.8, Attitude(), np.array([0.0, 4.0, -30.0]), 30.0, "sim")
+    fuser.update(lying_prediction(INTR, MOUNT, state, 8), state, 0.8, r.rgb)
+    assert fuser.geometry_ran
+    fuser.update(Prediction(9, 1.0, None, None, False, "decode failed"), state, 1.0, r.rgb)
+    assert not fuser.geometry_ran
 
 
 def test_fused_pairs_confirm_what_no_single_pair_could_and_show_what_none_saw():

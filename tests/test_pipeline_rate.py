@@ -13,7 +13,8 @@ from edge_landing.cli.run import config_from_args
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
-from edge_landing.runtime.io.sources import Grabber, Reader, SourceConfig, SourceKind
+from edge_landing.runtime.io.grabber import Grabber
+from edge_landing.runtime.io.sources import Reader, SourceConfig, SourceKind
 from edge_landing.runtime.perception.inference import OnnxModel
 from edge_landing.runtime.perception.scale import AltitudeScaleEstimator
 from edge_landing.runtime.pipeline import JointInference, Pipeline, PipelineOptions, ScaleStage

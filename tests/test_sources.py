@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from edge_landing.runtime.core.errors import InputError
-from edge_landing.runtime.io.sources import Grabber, Reader, SourceConfig, SourceKind
+from edge_landing.runtime.io.grabber import Grabber
+from edge_landing.runtime.io.sources import Reader, SourceConfig, SourceKind
 from tests.run_helpers import write_video
 
 

@@ -7,7 +7,9 @@ fed as metric depth with one-hot HVO, the way the network's outputs reach fusion
 vehicle a little (and so the grid, in NED mode). Prints one JSON object: latency p50/p90/p99 in ms after
 warm-up, frames per second, valid-target share, the thread's CPU time per frame (p50/p99: what the frame
 costs, less inflated by other processes than wall time) and the machine's load average, because on a
-shared machine a loaded CPU inflates every wall-clock figure.
+shared machine a loaded CPU inflates every wall-clock figure. There is no camera image, so motion geometry
+never runs and no spot is confirmed (valid share 0): this times the network's grid and spot proposal only.
+Fusion with geometry confirmation, on a rendered flight: ``benchmarks.bench_motion`` (frames without a stage run).
 """
 from __future__ import annotations
 

@@ -4,9 +4,14 @@ Renders the first frames of an ``edge-sim --flight`` flight (approach, the vehic
 size, then times, on the same frames: the motion stage alone (``MotionStage.update``: keyframe pick,
 plane warp, DIS on the window cropped around the network's spot, heights), the whole fusion with it
 (``LandingFuser.update`` with the image) and the shipped model's inference (``--threads`` threads), after a
-warm-up. Percentiles are over frames. Thread pools as edge-run sets them (pipeline.threads): OpenCV at
-``--opencv-threads`` (edge-run: 1), numpy's BLAS at one thread: left at its default, OpenBLAS's idle threads spin
-after every small matrix product and take a core from OpenCV's DIS and from the model.
+warm-up. Percentiles are over frames. Fusion is also split into frames with and without a stage run: the
+frames without one are fusion's own per-frame cost with geometry confirmation in play (grid, geometry
+evidence, spot choice), which bench_fusion's imageless scene never reaches. ``--network shipped`` feeds fusion
+the shipped model's own output (its size, metric from the altitude), as edge-run does; the default, the
+flat-lying model's planar depth at the camera's size, gives fusion more spots to confirm.
+Thread pools as edge-run sets them (pipeline.threads): OpenCV at ``--opencv-threads`` (edge-run: 1), numpy's
+BLAS at one thread: left at its default, OpenBLAS's idle threads spin after every small matrix product and take
+a core from OpenCV's DIS and from the model.
 The stage runs every ``geometry_interval_s`` of flight time, so its cost per frame depends on the camera's rate
 (``--fps``, the flight's frame rate): a 30 frames/s camera pays it on one frame in six, 10 frames/s on one in two.
 
@@ -40,11 +45,13 @@ def _pct(ms: list[float]) -> dict[str, float]:
 
 
 def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, style: str, seed: int,
-               fps: float = 10.0, opencv_threads: int = 1) -> dict[str, Any]:
+               fps: float = 10.0, opencv_threads: int = 1, network: str = "lying") -> dict[str, Any]:
     from edge_landing import sim
     from edge_landing.benchmarks.lying_model import lying_prediction
     from edge_landing.runtime.models import default_model_path
     from edge_landing.runtime.perception.inference import OnnxModel
+    from edge_landing.runtime.perception.scale import AltitudeScaleEstimator
+    from edge_landing.runtime.pipeline import ScaleStage
     from edge_landing.sim.generate import SimConfig, render_sample, vehicle_samples
 
     scfg = SimConfig(out=Path("."), frames=200, style=sim.Style.from_string(style), seed=seed, flight=True,
@@ -60,19 +67,23 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
     limit_side_threads(SideThreads(opencv=opencv_threads, blas=1))
     fuser = LandingFuser(FusionConfig(), intr, mount)
     model = OnnxModel.load(default_model_path(), threads)
-    stage_ms, fusion_ms, model_ms = [], [], []
+    scale = ScaleStage(None, AltitudeScaleEstimator(), intr, mount)
+    stage_ms, fusion_ms, model_ms, ran = [], [], [], []
     for k, (s, rgb) in enumerate(shots):
         state = VehicleState(s.t_s, s.attitude, s.position_ned_m.copy(), s.agl_m, "sim")
-        pred = lying_prediction(intr, mount, state, k)
         t0 = time.perf_counter()
-        target = fuser.update(pred, state, s.t_s, rgb)
+        own = model.predict(rgb, k, s.t_s)
         t1 = time.perf_counter()
-        model.predict(rgb, k, s.t_s)
+        # "shipped": fusion gets the model's own output at its own size, metric from the altitude, as in edge-run.
+        pred = scale.apply(own, state) if network == "shipped" else lying_prediction(intr, mount, state, k)
         t2 = time.perf_counter()
+        target = fuser.update(pred, state, s.t_s, rgb)
+        t3 = time.perf_counter()
         if k >= warmup:
-            fusion_ms.append(1e3 * (t1 - t0))
-            model_ms.append(1e3 * (t2 - t1))
+            fusion_ms.append(1e3 * (t3 - t2))
+            model_ms.append(1e3 * (t1 - t0))
             stage_ms.append(1e3 * target.timings_s.get("geometry", float("nan")))
+            ran.append(fuser.geometry_ran)
     # The stage alone, on the same frames, from a fresh keyframe ring (no fusion around it).
     alone = LandingFuser(FusionConfig(), intr, mount).motion
     alone_ms = []
@@ -85,10 +96,16 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
     window = list(alone.config.window_hw)
     # Shares of means: the stage runs every geometry_interval_s, so its p50 over frames says little alone.
     stage, total = _pct(stage_ms), float(np.mean(np.asarray(fusion_ms) + np.asarray(model_ms)))
+    # Fusion's own cost (grid, geometry evidence, spot choice) on frames without a stage run, and with one.
+    fused, stage_ran = np.asarray(fusion_ms), np.asarray(ran, dtype=bool)
+    split = {key: _pct(list(fused[mask])) if mask.any() else None
+             for key, mask in (("fusion_without_stage_run_ms", ~stage_ran), ("fusion_with_stage_run_ms", stage_ran))}
     return {"size": f"{width}x{height}", "window_hw": window, "frames": frames, "threads": threads, "fps": fps,
+            "network": network,
             "opencv_threads": opencv_threads, "cpu": cpu_features().summary(),
             "stage_in_fusion_ms": stage, "stage_alone_ms": _pct(alone_ms), "fusion_ms": _pct(fusion_ms),
-            "model_ms": _pct(model_ms), "stage_share_of_model_plus_fusion": stage["mean"] / total}
+            "model_ms": _pct(model_ms), "stage_share_of_model_plus_fusion": stage["mean"] / total,
+            "stage_runs": int(stage_ran.sum()), **split}
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
@@ -102,6 +119,9 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--fps", type=float, default=10.0, help="the flight's frame rate (the camera's)")
     p.add_argument("--style", default="suburban")
     p.add_argument("--seed", type=int, default=41)
+    p.add_argument("--network", choices=("lying", "shipped"), default="lying",
+                   help="what fusion gets: the flat-lying model's planar depth at the camera's size (more spots to "
+                        "confirm), or the shipped model's own output, metric from the altitude (as edge-run runs it)")
     p.add_argument("--json", help="write the results here")
     a = p.parse_args(argv)
     for name in ("frames", "threads", "opencv_threads"):
@@ -112,7 +132,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     results = []
     sizes = [parse_size(s) for s in a.sizes]          # all checked before the first (slow) render
     for w, h in sizes:
-        r = bench_size(w, h, a.frames, a.warmup, a.threads, a.style, a.seed, a.fps, a.opencv_threads)
+        r = bench_size(w, h, a.frames, a.warmup, a.threads, a.style, a.seed, a.fps, a.opencv_threads, a.network)
         results.append(r)
         s, f, m = r["stage_alone_ms"], r["fusion_ms"], r["model_ms"]
         i = r["stage_in_fusion_ms"]
@@ -123,6 +143,11 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
               f"fusion with it p50 {f['p50']:.2f} ms, model p50 "
               f"{m['p50']:.2f} ms; stage = {100 * r['stage_share_of_model_plus_fusion']:.0f} % of model + fusion (means)",
               flush=True)
+        for key, what in (("fusion_without_stage_run_ms", "without"), ("fusion_with_stage_run_ms", "with")):
+            q = r[key]
+            if q is not None:
+                print(f"{'':>8s} fusion on frames {what} a stage run: p50 {q['p50']:.2f} p90 {q['p90']:.2f} "
+                      f"p99 {q['p99']:.2f} ms", flush=True)
     if a.json:
         Path(a.json).write_text(json.dumps(results, indent=1))
     return 0

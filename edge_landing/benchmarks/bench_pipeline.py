@@ -29,8 +29,9 @@ from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import VehicleState
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
-from edge_landing.runtime.io.sources import Grabber, Reader, SourceConfig, SourceKind
+from edge_landing.runtime.io.sources import Reader, SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.perception.backend import Runtime
 from edge_landing.runtime.perception.inference import OnnxModel, SessionConfig

@@ -190,7 +190,7 @@ def _trace_row(k: int, n_app: int, n_hov: int, name: str, s: Any, target: Any, f
         det = res.detectable_m[np.isfinite(res.detectable_m)]
         row.update(baseline_m=round(res.baseline_m, 2), ref_age_s=round(res.reference_age_s, 2),
                    noise_px=round(res.flow_noise_px, 3), rain=round(res.rain_share, 4),
-                   measurable=round(det.size / res.detectable_m.size, 3),
+                   measurable=round(det.size / res.detectable_m.size, 3), plane_raised_m=round(res.plane_raised_m, 1),
                    det_p50_m=round(float(np.median(det)), 3) if det.size else None,
                    plane_m=None if fuser.motion.ground_down_m is None
                    else round(fuser.motion.ground_down_m - float(s.position_ned_m[2]), 1))

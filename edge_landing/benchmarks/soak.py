@@ -29,9 +29,10 @@ import numpy as np
 from edge_landing.benchmarks.flat_model import flat_ground_model
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_conn import load_mavutil
 from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
-from edge_landing.runtime.io.sources import Grabber, Reader, SourceConfig, SourceKind
+from edge_landing.runtime.io.sources import Reader, SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.perception.inference import OnnxModel
 from edge_landing.runtime.perception.scale import AltitudeScaleEstimator

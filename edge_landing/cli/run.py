@@ -26,8 +26,9 @@ from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame
+from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink
-from edge_landing.runtime.io.sources import Grabber, SourceConfig, SourceKind
+from edge_landing.runtime.io.sources import SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.perception.backend import RuntimeRequest
 from edge_landing.runtime.perception.precision import ModelChoice, Precision, ProbeConfig, pick_model

@@ -111,7 +111,8 @@ class VehicleState:
 
     ``attitude``: body FRD relative to local NED (radians). ``position_ned_m``: vehicle local NED position
     (metres) or None. ``agl_m``: height above ground (rangefinder, or relative altitude over flat terrain) or
-    None; ``agl_source`` says which.
+    None; ``agl_source`` says which. ``position_epoch`` counts the times the autopilot's local frame moved
+    (a position jump, e.g. an EKF reset, or a reboot): NED points of different epochs are not comparable.
     """
 
     time_s: float
@@ -119,3 +120,4 @@ class VehicleState:
     position_ned_m: Optional[np.ndarray] = None
     agl_m: Optional[float] = None
     agl_source: str = ""
+    position_epoch: int = 0

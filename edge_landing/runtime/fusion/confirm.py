@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 
@@ -71,6 +71,7 @@ class GeometryConfirmation:
                                  config.obstacle_height_m, config.motion.detect_sigmas)
         self.view: Optional[GeometryView] = None
         self.note = ""
+        self.ran = False                                      # the last ``run`` ran the motion stage
         self._last_run_s: Optional[float] = None
         self._frame: tuple[str, int] = (POSE_TELEMETRY, 0)   # pose source and odometry epoch of ``grid``
         self._image_posed = False                             # this frame's pose came from the images
@@ -78,14 +79,16 @@ class GeometryConfirmation:
     def reset(self) -> None:
         self.grid.clear()
         self.motion.reset()
-        self.view, self.note, self._last_run_s = None, "", None
+        self.view, self.note, self._last_run_s, self.ran = None, "", None, False
 
     def run(self, view: Optional[GridView], image: Optional[np.ndarray], state: Optional[VehicleState],
-            position: Optional[np.ndarray], t_cap: float, focus: Optional[np.ndarray]) -> Optional[GeometryView]:
+            position: Optional[np.ndarray], t_cap: float,
+            focus: Optional[Callable[[], np.ndarray]]) -> Optional[GeometryView]:
         """Run the motion stage on this frame (its window centred on one of the network's candidate spots
-        ``focus``, K×3 NED, the first preferred; see focus_candidates) when due, and return the evidence
-        aligned with the fusion grid ``view`` (or None)."""
-        self.view = None
+        ``focus()``, K×3 NED, the first preferred; see focus_candidates) when due, and return the evidence
+        aligned with the fusion grid ``view`` (or None). ``focus`` is called only when the stage runs: the
+        candidates cost a pass over the grid that most frames (between runs) do not need."""
+        self.view, self.ran = None, False
         agl = math.nan if state is None or state.agl_m is None else float(state.agl_m)
         if view is None or (position is None and (image is None or not math.isfinite(agl))):
             self.note = "no vehicle position and no image pose (needs the camera image and height above ground)"
@@ -98,8 +101,8 @@ class GeometryConfirmation:
             # (Without position it runs every frame: the frame's place in the grid comes from the stage.)
             self.note = f"no new geometry (the stage runs every {self.config.geometry_interval_s:g} s)"
         else:
-            self._last_run_s = t_cap
-            origin = self._update(np.asarray(image), state, position, agl, t_cap, focus)
+            self._last_run_s, self.ran = t_cap, True
+            origin = self._update(np.asarray(image), state, position, agl, t_cap, None if focus is None else focus())
         if origin is None:
             return None
         self.grid.centre_on(float(origin[0]), float(origin[1]))
@@ -164,6 +167,8 @@ class GeometryConfirmation:
         last = self.motion.last
         if last is not None and last.rain_share > 0:
             out = f"{out}; rain streaks filled in ({100 * last.rain_share:.0f} % of the window)"
+        if last is not None and last.plane_raised_m > 0:
+            out = f"{out}; measured on a surface {last.plane_raised_m:.1f} m above the ground (a roof)"
         return out if not self.note else f"{out}; {self.note}"
 
     def unconfirmed_reason(self, proposal: Choice, view: Optional[GridView], confirmed: Optional[GridView]) -> str:

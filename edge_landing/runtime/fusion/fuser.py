@@ -36,6 +36,7 @@ import logging
 import math
 import time
 from dataclasses import replace
+from functools import partial
 from typing import Optional
 
 import cv2
@@ -101,6 +102,7 @@ class LandingFuser:
         self._grid = TopDownGrid(config.cell_m, config.grid_radius_m)
         self._view: Optional[GridView] = None
         self._mode: Optional[str] = None
+        self._epoch = 0                         # VehicleState.position_epoch the NED grids were built in
         self._last_time_s: Optional[float] = None
         self._kept: Optional[KeptSpot] = None
         self._tracked: Optional[KeptSpot] = None
@@ -116,6 +118,11 @@ class LandingFuser:
     def geometry(self) -> Optional[GeometryView]:
         """Motion-geometry evidence on the last frame's grid (clear / obstacle cells), or None."""
         return self._confirm.view
+
+    @property
+    def geometry_ran(self) -> bool:
+        """Whether the last :meth:`update` ran the motion stage (it runs every ``geometry_interval_s``)."""
+        return self._confirm.ran
 
     def reset(self) -> None:
         self._grid.clear()
@@ -135,6 +142,7 @@ class LandingFuser:
         """Fuse one frame. ``image``: the camera frame (RGB or grey uint8, any size) for motion geometry."""
         t0 = time.perf_counter()
         timings = dict(getattr(pred, "timings_s", None) or {})
+        self._confirm.ran = False          # a frame that stops before geometry did not run the stage
         try:
             target = self._update(pred, state, now_s, timings, image)
         except Exception as exc:  # a flight loop must not die on one frame; the frame gets no target
@@ -201,6 +209,13 @@ class LandingFuser:
                         f"(need {100 * cfg.min_valid_depth_share:.0f}%)")
 
         r_nc = ned_from_camera(self.mount, attitude)
+        epoch = 0 if state is None else state.position_epoch
+        if position is not None and epoch != self._epoch:
+            # The autopilot's local frame moved (telemetry.TelemetryBuffer): evidence, keyframes and spots kept
+            # in the old frame would be misplaced by the jump, so they are dropped, as after a reset.
+            log.warning("vehicle position epoch %d -> %d: fusion and geometry evidence start over", self._epoch, epoch)
+            self.reset()
+            self._epoch = epoch
         self._prepare_grid(position, t_cap)
         n_in = self._rasterise(depth, hvo_h, r_nc.astype(np.float32), position)
         mode = "ned" if position is not None else "vehicle"
@@ -219,8 +234,8 @@ class LandingFuser:
             if kept is not None and t_cap - kept.time_s > cfg.keep_target_s:
                 setattr(self, name, None)
         proposal = choose_spot(self._view, here, cfg, self._tracked)
-        focus = None if proposal is None else focus_candidates(
-            self._view, np.array([proposal.north_m, proposal.east_m, proposal.down_m]), here, cfg)
+        focus = None if proposal is None else partial(
+            focus_candidates, self._view, np.array([proposal.north_m, proposal.east_m, proposal.down_m]), here, cfg)
         t_geo = time.perf_counter()
         geo = self._confirm.run(self._view, image, state, position, t_cap, focus)
         timings["geometry"] = time.perf_counter() - t_geo

@@ -5,7 +5,8 @@ plane-induced homography; a point ``h`` above the plane is displaced from that p
 epipolar direction. Frames: camera = OpenCV (x right, y down, z forward), world = local NED. The
 plane-plus-parallax algebra (derivation, terrain fit, the overhang check) is in fusion.parallax.
 Flow: the reference image is first warped by the plane homography into the current view, so the flow DIS
-has to find is only the residual parallax (small for the ground even with tens of metres of baseline). The
+has to find is only the residual parallax (small for the ground even with tens of metres of baseline; the
+plane is the ground's, or a roof's when the window looks at one: fusion.plane_sweep). The
 height of the ground itself is the terrain (slopes of a few degrees read as metres at 100 m): a smooth
 quadratic surface is fitted robustly to the heights and removed, so ``h`` is the height above the *local*
 ground. Pure numpy/OpenCV, no I/O; memory is bounded in time (``history_s``) and count.
@@ -39,6 +40,7 @@ from edge_landing.runtime.fusion.parallax import (
     parallax_height,
     plane_homography,
 )
+from edge_landing.runtime.fusion.plane_sweep import sweep_plane
 from edge_landing.runtime.fusion.streaks import RainFilter
 
 __all__ = ["POSE_IMAGE", "POSE_TELEMETRY", "CameraPose", "DisPreset", "MotionConfig", "MotionStage", "ParallaxResult",
@@ -311,6 +313,10 @@ class MotionStage:
                  window: tuple[slice, slice], image_pose: Optional[ImagePose] = None) -> ParallaxResult:
         cfg = self.config
         rs, cs = window
+        # A window on a roof is measured against the roof's plane, found from the images (fusion.plane_sweep).
+        sweep = sweep_plane(self.k_cv, pose, ref.pose, ref.grey, grey[rs, cs], (rs.start, cs.start), cfg.sweep)
+        if sweep.raised:
+            pose = replace(pose, agl_m=sweep.level_m)
         hom, rot, t, n, d = plane_homography(self.k_cv, pose, ref.pose)
         # Warp only the window: current pixel (x, y) of the window = (x + c0, y + r0) of the frame.
         shift = np.array([[1.0, 0.0, cs.start], [0.0, 1.0, rs.start], [0.0, 0.0, 1.0]])
@@ -353,7 +359,8 @@ class MotionStage:
         reliable = near & explained
         with np.errstate(divide="ignore", invalid="ignore"):
             sigma_plane = d * (noise_px / f) / gnorm
-        fit = fit_ground(ned, hgt, sigma_plane, reliable & (sigma_plane <= cfg.max_sigma_h_m), pose.position_ned_m)
+        fit = fit_ground(ned, hgt, sigma_plane, reliable & (sigma_plane <= cfg.max_sigma_h_m), pose.position_ned_m,
+                         start_m=0.0 if sweep.raised else None)
         ground = ground_surface(fit, ned, pose.position_ned_m)
         local = hgt - ground
         # dh/ds = (d - h)^2 / d: the plane's sensitivity holds only at the plane; ground below it (a rangefinder
@@ -386,6 +393,8 @@ class MotionStage:
         patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)
         rng = np.sqrt(np.sum((ned - pose.position_ned_m[:, None, None]) ** 2, axis=0))
         resolved = patch_px * rng / f <= cfg.max_patch_footprint_m
+        if sweep.verified is not None:   # on a roof's plane, only what matches that plane confirms
+            resolved &= sweep.verified
         if cfg.overhang_check_m > 0:   # ground seen under a crown or eaves cannot confirm
             resolved &= column_seen(pose, self.k_cv, (cs.start, rs.start), xc, ned, reliable,
                                     cfg.overhang_check_m)
@@ -395,9 +404,10 @@ class MotionStage:
         self.last_reason = ""
         # Only a pair whose flow held (noise near the floor, most of the window explained) may move the plane:
         # a failed pair's fit is noise, and a plane set from it would spoil the next pairs too.
-        if np.any(fit != 0.0) and noise_px <= cfg.max_plane_noise_px and usable.mean() >= 0.5:
+        if not sweep.raised and np.any(fit != 0.0) and noise_px <= cfg.max_plane_noise_px and usable.mean() >= 0.5:
             self._ground = (time_s, float(pose.position_ned_m[2] + d - np.median(ground[usable])))
         return ParallaxResult(time_s, rs, cs, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
                               time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & ~explained,
                               POSE_TELEMETRY if image_pose is None else POSE_IMAGE,
-                              0.0 if image_pose is None else image_pose.sigma_m, rain)
+                              0.0 if image_pose is None else image_pose.sigma_m, rain,
+                              sweep.ground_m - sweep.level_m)

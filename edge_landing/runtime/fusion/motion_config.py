@@ -13,6 +13,7 @@ import numpy as np
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.fusion.image_motion import ImagePoseConfig
+from edge_landing.runtime.fusion.plane_sweep import SweepConfig
 from edge_landing.runtime.fusion.streaks import StreakConfig
 
 POSE_TELEMETRY, POSE_IMAGE = "telemetry", "image"
@@ -72,6 +73,7 @@ class MotionConfig:
     overhang_check_m: float = 8.0
     image_pose: ImagePoseConfig = ImagePoseConfig()   # the fallback when telemetry has no position
     streaks: StreakConfig = StreakConfig()            # rain streaks filled in before the flow (fusion.streaks)
+    sweep: SweepConfig = SweepConfig()                # the plane a window is measured against (fusion.plane_sweep)
 
     def __post_init__(self) -> None:
         h, w = self.window_hw
@@ -120,3 +122,4 @@ class ParallaxResult:
     pose_source: str = POSE_TELEMETRY    # where the baseline came from: telemetry positions or the images
     pose_sigma_m: float = 0.0            # 1-σ error of the image pose's worst direction (0: telemetry)
     rain_share: float = 0.0              # share of the window found to be rain, when filled in (fusion.streaks)
+    plane_raised_m: float = 0.0          # the plane's height above the ground's level (a roof; fusion.plane_sweep)

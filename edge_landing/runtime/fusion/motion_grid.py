@@ -16,7 +16,11 @@ measurable to the obstacle height and not high; ``seen_w`` / ``high_w`` are weig
 measured it / found it high. A cell is *geometry-clear* while ``now - clear_t <= memory_s`` and it is not
 an obstacle; an *obstacle* when ``high_w >= obstacle_vote_share · seen_w`` (flow has heavy tails: one
 odd frame out of many does not make an obstacle; a real one is high in most frames that could see it),
-or when its fused height stands out (half the obstacle height and ``detect_sigmas`` fused σ).
+or when its fused height stands out (half the obstacle height and ``detect_sigmas`` fused σ). Each cell also
+keeps the NED level of the surface that last confirmed it: heights are judged against each pair's own
+local ground (a roof's, on a raised plane: fusion.plane_sweep), so a clear cell within 1 m of a clear cell
+at another level (more than the obstacle height plus 3 σ of the difference apart: 1.2 m for 0.5 m) is not
+clear (a step between two clear surfaces).
 Pure numpy/OpenCV; memory is the grid itself (bounded) and timestamps (bounded in time by construction).
 """
 from __future__ import annotations
@@ -36,7 +40,8 @@ from edge_landing.runtime.fusion.motion import ParallaxResult
 class GeometryView:
     """Geometry evidence on a window of cells (rows north, columns east), as of ``time_s``.
 
-    ``clear``: confirmed clear of obstacles of ``obstacle_height_m``; ``obstacle``: something at least that
+    ``clear``: confirmed clear of obstacles of ``obstacle_height_m``, and at the level of the clear cells around
+    it (no step between two clear surfaces: ``_level_steps``); ``obstacle``: something at least that
     tall was seen; ``detectable_m``: the smallest height detectable there with the evidence fused within the
     memory (inf: never measured); ``baseline_m``: the baseline of the frame that last confirmed the cell (NaN: never);
     ``clear_age_s``: time since that confirmation (inf: never).
@@ -72,6 +77,12 @@ class GeometryGrid:
         # the vote (growing each frame's outliers before it made most open ground an "obstacle").
         k = 2 * max(1, int(math.ceil(self.grow_m / self.cell_m))) + 1
         self._grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        r = 2 * max(1, int(math.ceil(1.0 / self.cell_m))) + 1       # cells within 1 m: levels must agree
+        self._reach = np.ones((r, r), np.uint8)
+        # A confirmed cell's level is known to σ <= obstacle height / detect_sigmas: two such levels differ by
+        # more than the obstacle height plus detect_sigmas of their difference's σ only at a real step (with
+        # the obstacle height alone, flow noise between neighbouring confirmed cells moved spots).
+        self._level_step_m = self.obstacle_height_m * (1.0 + math.sqrt(2.0))
         self.north0_m = -self.size * self.cell_m / 2.0
         self.east0_m = -self.size * self.cell_m / 2.0
         self._time_s: Optional[float] = None
@@ -83,6 +94,7 @@ class GeometryGrid:
         self._det_t = np.full((s, s), -np.inf)                   # when it was measured
         self._clear_t = np.full((s, s), -np.inf)                 # last frame that confirmed the cell
         self._clear_base = np.full((s, s), np.nan, np.float32)   # that frame's baseline
+        self._clear_down = np.full((s, s), np.nan, np.float32)   # NED down of the surface that frame measured
         self._w = np.zeros((2, s, s), np.float32)                # decayed weights: seen, high
         self._fused = np.zeros((2, s, s), np.float32)            # decayed Σ 1/σ², Σ h/σ² of the cell's heights
         self._time_s = None
@@ -98,6 +110,7 @@ class GeometryGrid:
             self._det_t = _shift(self._det_t, dr, dc, -np.inf)
             self._clear_t = _shift(self._clear_t, dr, dc, -np.inf)
             self._clear_base = _shift(self._clear_base, dr, dc, np.nan)
+            self._clear_down = _shift(self._clear_down, dr, dc, np.nan)
             self._w = np.stack([_shift(w, dr, dc, 0.0) for w in self._w])
             self._fused = np.stack([_shift(w, dr, dc, 0.0) for w in self._fused])
             # Cell (r, c) moved to (r - dr, c - dc).
@@ -119,7 +132,7 @@ class GeometryGrid:
         frame = self._frame_cells(result)
         if frame is None:
             return 0
-        r0, c0, det, high, suspect, mean_h = frame
+        r0, c0, det, high, suspect, mean_h, mean_down = frame
         win = (slice(r0, r0 + det.shape[0]), slice(c0, c0 + det.shape[1]))
         r1, c1 = r0 + det.shape[0], c0 + det.shape[1]
         box = self._box
@@ -145,6 +158,7 @@ class GeometryGrid:
         self._clear_t[win][confirm] = t
         self._clear_t[win][(high | suspect) & ~confirm] = -np.inf
         self._clear_base[win][confirm] = np.float32(result.baseline_m)
+        self._clear_down[win][confirm] = mean_down[confirm]
         self._w[0][win] += measured | high
         self._w[1][win] += high
         return int(measured.sum())
@@ -160,9 +174,9 @@ class GeometryGrid:
         return det, high
 
     def _frame_cells(self, result: ParallaxResult
-                     ) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """(row0, col0, detectable, high, suspect, mean height per cell) on the bounding box of this frame's
-        cells."""
+                     ) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """(row0, col0, detectable, high, suspect, mean height, mean NED down per cell) on the bounding box of
+        this frame's cells."""
         ned = result.ned_m
         ok = np.isfinite(ned[0])
         if not ok.any():
@@ -175,6 +189,7 @@ class GeometryGrid:
             return None
         r, c = r[inside], c[inside]
         hgt = result.height_m[ok][inside]
+        down = ned[2][ok][inside]
         det = result.detectable_m[ok][inside]
         sigma = result.sigma_m[ok][inside]
         r0, r1, c0, c1 = max(int(r.min()) - 1, 0), min(int(r.max()) + 2, self.size), \
@@ -212,7 +227,9 @@ class GeometryGrid:
         suspect = cv2.dilate(suspect.view(np.uint8), self._grow).astype(bool)
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_h = (np.bincount(idx[measured_px], weights=hgt[measured_px], minlength=n) / n_rel).reshape(rows, cols)
-        return r0, c0, det_c, high, suspect, mean_h
+            mean_down = (np.bincount(idx[measured_px], weights=down[measured_px], minlength=n) / n_rel
+                         ).reshape(rows, cols).astype(np.float32)
+        return r0, c0, det_c, high, suspect, mean_h, mean_down
 
     def view(self, north0_m: float, east0_m: float, shape: tuple[int, int], now_s: float) -> GeometryView:
         """The evidence on a window of cells whose corner is (north0, east0) (cells outside: no evidence).
@@ -228,6 +245,7 @@ class GeometryGrid:
         age = np.full((rows, cols), np.inf)
         base = np.full((rows, cols), np.nan, np.float32)
         box = self._box
+        v = None
         if box is not None:
             # Grid cell (r, c) is window cell (r - dr, c - dc): the evidence box clipped to both.
             r0, r1 = max(box[0], dr), min(box[1], dr + rows)
@@ -244,9 +262,33 @@ class GeometryGrid:
                 since = now_s - self._clear_t[g]
                 age[v] = np.where(np.isfinite(since), since, np.inf)
                 base[v] = self._clear_base[g]
+                down = self._clear_down[g]
         obstacle = cv2.dilate(high.view(np.uint8), self._grow).astype(bool)
         clear = (age <= self.memory_s) & ~obstacle
+        if v is not None:       # only cells inside the evidence box can be clear
+            clear[v] &= ~_level_steps(np.where(clear[v], down, np.nan), self._level_step_m, self._reach)
         return GeometryView(now_s, self.obstacle_height_m, clear, obstacle, det, base, age)
+
+
+def _level_steps(down: np.ndarray, max_step_m: float, kernel: np.ndarray) -> np.ndarray:
+    """Cells within ``kernel`` of a cell whose surface lies more than ``max_step_m`` higher or lower (NaN: no
+    level there).
+
+    Each pair judges heights against its own local ground: a roof measured on its own plane and the street
+    measured on the ground's are both clear, and a disc over the roof's edge would hold only clear cells. The
+    levels of the surfaces that confirmed nearby cells must agree; a band of cells along every step is left
+    unconfirmed, so no clear disc spans one (the kernel reaches over a one-cell gap: a hole-filled cell has
+    no level of its own)."""
+    finite = np.isfinite(down)
+    out: np.ndarray = finite.copy()
+    if not finite.any():
+        return out
+    hi = cv2.dilate(np.where(finite, down, -np.inf).astype(np.float32), kernel, borderType=cv2.BORDER_CONSTANT,
+                    borderValue=-np.inf)
+    lo = cv2.erode(np.where(finite, down, np.inf).astype(np.float32), kernel, borderType=cv2.BORDER_CONSTANT,
+                   borderValue=np.inf)
+    out &= (hi - down > max_step_m) | (down - lo > max_step_m)
+    return out
 
 
 def _shift(a: np.ndarray, dr: int, dc: int, fill: float) -> np.ndarray:

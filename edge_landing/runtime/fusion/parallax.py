@@ -18,7 +18,7 @@ Derivation (normalised image coordinates, camera c = "1", camera r = "2"):
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 
@@ -120,11 +120,13 @@ def _design(dn: np.ndarray, de: np.ndarray) -> np.ndarray:
 
 
 def fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndarray, here: np.ndarray,
-                max_points: int = 3000) -> np.ndarray:
+                max_points: int = 3000, start_m: Optional[float] = None) -> np.ndarray:
     """Robust quadratic surface through the ground's heights (coefficients in 100 m units).
 
-    Starts from the 10th percentile (obstacles sit above the ground; some ground shows between them) and
-    trims to shrinking windows that reach less far up than down, so obstacles do not lift the surface.
+    Starts from the 10th percentile (obstacles sit above the ground; some ground shows between them), or
+    from ``start_m`` when the surface's level is known (a roof the plane sweep found: the street beyond its
+    edge must not become its ground), and trims to shrinking windows that reach less far up than down, so
+    obstacles do not lift the surface.
     """
     coef = np.zeros(6)
     idx = np.flatnonzero(use.reshape(-1))
@@ -136,7 +138,7 @@ def fit_ground(ned: np.ndarray, hgt: np.ndarray, sigma: np.ndarray, use: np.ndar
     dn = (ned[0].reshape(-1)[idx] - here[0]) / 100.0
     de = (ned[1].reshape(-1)[idx] - here[1]) / 100.0
     a = _design(dn, de)
-    coef[0] = float(np.percentile(h, 10))
+    coef[0] = float(np.percentile(h, 10)) if start_m is None else start_m
     for window in (3.0, 1.5, 0.6):
         res = h - a @ coef
         # Asymmetric: what stands out above the surface is left out sooner than what lies below it, so a

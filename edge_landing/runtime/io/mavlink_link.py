@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 FRAME_LOCAL_NED, FRAME_BODY_FRD = 1, 12
 TARGET_TYPE_VISION_OTHER = 3
 TELEMETRY_MESSAGES = ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "LOCAL_POSITION_NED")
+ESTIMATOR_MESSAGES = ("EKF_STATUS_REPORT", "ESTIMATOR_STATUS")   # ArduPilot's and PX4's, read when sent
 MAV_AUTOPILOT_INVALID = 8
 NOT_A_VEHICLE_TYPES = {6, 18, 26, 27, 30}  # GCS, onboard controller, gimbal, ADSB, camera
 
@@ -339,10 +340,12 @@ class MavlinkLink:
         self._last_request_s = now
         m = self._mavutil.mavlink
         interval_us = 1e6 / self.config.telemetry_rate_hz
-        for name in TELEMETRY_MESSAGES:
+        # The estimator's status at 2 Hz (each autopilot refuses the other's message id: harmless).
+        wanted = [(name, interval_us) for name in TELEMETRY_MESSAGES] + [(name, 5e5) for name in ESTIMATOR_MESSAGES]
+        for name, interval in wanted:
             msg_id = getattr(m, f"MAVLINK_MSG_ID_{name}")
             self._send(m.MAVLink_command_long_message(self.peer[0], self.peer[1], m.MAV_CMD_SET_MESSAGE_INTERVAL,
-                                                      0, msg_id, interval_us, 0, 0, 0, 0, 0))
+                                                      0, msg_id, interval, 0, 0, 0, 0, 0))
 
     def _choose_peer(self, msg: Any, sender: Tuple[int, int]) -> None:
         """The first autopilot-type HEARTBEAT (of ``target_system`` when given) names the one autopilot."""
@@ -369,10 +372,15 @@ class MavlinkLink:
             return
         arrival = time.monotonic()
         self._last_heard_s = arrival
+        t = self.telemetry
+        if kind in ESTIMATOR_MESSAGES:
+            m = self._mavutil.mavlink
+            glitch = m.EKF_GPS_GLITCHING if kind == "EKF_STATUS_REPORT" else m.ESTIMATOR_GPS_GLITCH
+            t.add_estimator_status(int(msg.flags), arrival, glitch)
+            return
         if kind not in TELEMETRY_MESSAGES:
             return
         self._last_telemetry_s = arrival
-        t = self.telemetry
         if kind == "ATTITUDE":
             t.add_attitude(msg.roll, msg.pitch, msg.yaw, msg.time_boot_ms, arrival)
         elif kind == "LOCAL_POSITION_NED":

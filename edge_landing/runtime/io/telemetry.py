@@ -10,8 +10,14 @@ The link thread calls ``add_*`` as messages arrive; the pipeline asks ``lookup(c
 - Plausibility: every field is gated (non-finite, tilt beyond the envelope, yaw out of range, negative or
   too large height above ground, a rangefinder outside its own range); a rejected sample is counted by
   reason and never used. Nothing here raises on a bad number.
+- Frame moves: a local position farther from the last one than the vehicle can fly (``max_speed_mps``; an EKF
+  reset, a GPS glitch), a heading that turned faster than it can yaw (an EKF yaw reset) or a reboot (its clock
+  restarted, or ``forget``) starts a new ``position_epoch`` (VehicleState): samples from before are dropped, and
+  fusion and the committed spot, which live in local NED, start over.
 - Freshness: a match is fresh only when the newest accepted attitude arrived no longer than ``fresh_s``
   ago on the companion's clock.
+- The autopilot's own word: while its estimator status (EKF_STATUS_REPORT, ESTIMATOR_STATUS) says the attitude
+  is not usable there is no match; while it says the horizontal position is not usable, states carry none.
 
 Attitude and position are interpolated between the two samples around the capture time, or taken from the
 nearest one within ``window_s``; anything older is ignored rather than guessed.
@@ -19,6 +25,7 @@ nearest one within ``window_s``; anything older is ignored rather than guessed.
 from __future__ import annotations
 
 import bisect
+import logging
 import math
 import threading
 import time
@@ -31,7 +38,11 @@ import numpy as np
 from edge_landing.runtime.core.camera import Attitude
 from edge_landing.runtime.core.messages import VehicleState
 
+log = logging.getLogger(__name__)
+_STARTS_OVER = "earlier samples, NED evidence and the committed spot are dropped"
 RANGEFINDER_DOWN = 25  # MAV_SENSOR_ROTATION_PITCH_270
+# Estimator flags, the same bits in ArduPilot's EKF_STATUS_REPORT and PX4's ESTIMATOR_STATUS.
+ESTIMATOR_ATTITUDE, ESTIMATOR_POS_HORIZ_REL, ESTIMATOR_CONST_POS_MODE = 1, 8, 128
 
 
 @dataclass(frozen=True)
@@ -48,6 +59,18 @@ class TelemetryConfig:
     max_tilt_rad: float = math.radians(60.0)  # |roll|, |pitch| beyond this are not a multicopter in flight
     max_agl_m: float = 1000.0   # relative altitude above this is not believed
     max_position_m: float = 1.0e5
+    # A local position that moves faster than this (and by more than max(min_jump_m, speed × interval)) did not
+    # fly there: the autopilot's frame moved (an EKF reset, a GPS glitch). The earlier positions are dropped and
+    # a new position epoch starts: NED evidence and a committed spot from before mean nothing in the new frame.
+    max_speed_mps: float = 40.0
+    min_jump_m: float = 5.0
+    # A heading that turns faster than this (and by more than min_yaw_jump_rad) was reset, not flown (an EKF yaw
+    # reset): everything placed in NED with the old heading is rotated about the vehicle, so a new epoch starts.
+    max_yaw_rate_rad_s: float = 2.0 * math.pi
+    min_yaw_jump_rad: float = math.radians(15.0)
+    # The autopilot's own estimator status (EKF_STATUS_REPORT, ESTIMATOR_STATUS) counts for this long after it
+    # arrived; without one the estimate is taken as good (autopilots that do not send it).
+    estimator_status_s: float = 3.0
 
 
 class ClockOffset:
@@ -60,6 +83,7 @@ class ClockOffset:
         self._window_min_s = math.inf
         self._last_remote_s = -math.inf
         self._future_since_s: Optional[float] = None
+        self.reboots = 0              # times the remote clock restarted (an autopilot reboot)
 
     def reset(self) -> None:
         self.offset_s, self._future_since_s = None, None
@@ -69,6 +93,7 @@ class ClockOffset:
         c = self.config
         if remote_s < self._last_remote_s - c.reboot_jump_s:
             self.reset()  # the autopilot rebooted: its clock restarted
+            self.reboots += 1
         diff = arrival_s - remote_s
         if self.offset_s is None:
             self.offset_s, self._window_start_s, self._window_min_s = diff, arrival_s, diff
@@ -166,6 +191,9 @@ class TelemetryBuffer:
         self._clock = ClockOffset(config)
         self._rejected: Counter[str] = Counter()
         self.samples = 0
+        self._position_epoch = 0
+        self._reboots = 0
+        self._estimator: Optional[Tuple[float, int, bool]] = None   # (arrival, flags, GPS glitch) of the newest
 
     # -- intake (link thread) ----------------------------------------------------------------------------
     def rejected(self) -> Dict[str, int]:
@@ -193,9 +221,39 @@ class TelemetryBuffer:
             if t is None:
                 self._rejected["sample stamped from the future"] += 1
                 return False
+            stale, why = self._frame_moved(series, t, value)
+            if stale is not None:
+                stale.clear()
+                self._position_epoch += 1
+                self._rejected[why] += 1
             series.add(t, value, arrival)
             self.samples += 1
             return True
+
+    def _frame_moved(self, series: _Series, t_s: float, value: np.ndarray) -> Tuple[Optional[_Series], str]:
+        """The series to empty and the counted reason when this sample shows that the autopilot's frame moved
+        since the newest sample of ``series`` (a reboot, a position or a heading faster than flight), else
+        (None, "")."""
+        c = self.config
+        if self._clock.reboots != self._reboots:
+            # A rebooted autopilot sets its local origin again: positions from before may name other places.
+            self._reboots = self._clock.reboots
+            log.warning("the autopilot's clock restarted (a reboot): " + _STARTS_OVER)
+            return self._position, "autopilot rebooted (its clock restarted): earlier positions dropped"
+        if series not in (self._position, self._attitude) or not series.times or t_s <= series.times[-1]:
+            return None, ""
+        dt = t_s - series.times[-1]
+        if series is self._position:
+            moved = float(np.linalg.norm(value - series.values[-1]))
+            if moved <= max(c.min_jump_m, c.max_speed_mps * dt):
+                return None, ""
+            log.warning("local position jumped %.1f m in %.2f s (EKF reset or glitch): " + _STARTS_OVER, moved, dt)
+            return series, "position jumped (the autopilot's frame moved): earlier positions dropped"
+        turned = abs(math.remainder(float(value[2] - series.values[-1][2]), 2.0 * math.pi))
+        if turned <= max(c.min_yaw_jump_rad, c.max_yaw_rate_rad_s * dt):
+            return None, ""
+        log.warning("heading jumped %.0f° in %.2f s (an EKF yaw reset): " + _STARTS_OVER, math.degrees(turned), dt)
+        return series, "heading jumped (a yaw reset): earlier attitudes dropped"
 
     def add_attitude(self, roll_rad: float, pitch_rad: float, yaw_rad: float, remote_ms: Optional[float] = None,
                      arrival_s: Optional[float] = None, sample_s: Optional[float] = None) -> bool:
@@ -241,6 +299,29 @@ class TelemetryBuffer:
             return False
         return self._add(self._range, np.array([distance_m]), remote_ms, arrival_s)
 
+    def add_estimator_status(self, flags: int, arrival_s: Optional[float] = None, glitch_flag: int = 0) -> None:
+        """The autopilot's estimator status. While its newest one (within ``estimator_status_s``) says the
+        attitude is not usable there is no telemetry; while it says the horizontal position is not usable
+        (no relative position, constant-position mode, or ``glitch_flag``: a GPS glitch), frames get no position,
+        so nothing is placed in or re-expressed from local NED (ARCHITECTURE.md §12)."""
+        arrival = time.monotonic() if arrival_s is None else arrival_s
+        with self._lock:
+            self._estimator = (arrival, int(flags), bool(int(flags) & glitch_flag))
+            bad = self._estimator_problem(arrival)
+            if bad:
+                self._rejected[f"the autopilot's estimator: {bad}"] += 1
+
+    def _estimator_problem(self, now_s: float) -> str:
+        """'' when the newest estimator status (if any, and recent) vouches for attitude and position."""
+        if self._estimator is None or abs(now_s - self._estimator[0]) > self.config.estimator_status_s:
+            return ""
+        _, flags, glitch = self._estimator
+        if not flags & ESTIMATOR_ATTITUDE:
+            return "attitude not usable"
+        if not flags & ESTIMATOR_POS_HORIZ_REL or flags & ESTIMATOR_CONST_POS_MODE or glitch:
+            return "horizontal position not usable"
+        return ""
+
     def add_state(self, state: VehicleState, local_time_s: float, arrival_s: Optional[float] = None) -> None:
         """A whole state sampled at a local time (a simulated camera's perfect telemetry), arrived at
         ``arrival_s`` (default: the sample time). Freshness counts from the arrival."""
@@ -258,6 +339,7 @@ class TelemetryBuffer:
             for s in (self._attitude, self._position, self._range, self._rel_alt):
                 s.clear()
             self._clock.reset()
+            self._position_epoch += 1
 
     # -- queries (pipeline thread) -----------------------------------------------------------------------
     def last_arrival_s(self) -> float:
@@ -273,12 +355,15 @@ class TelemetryBuffer:
             pos = self._position.at(capture_time_s, w)
             rng = self._range.at(capture_time_s, w)
             rel = self._rel_alt.at(capture_time_s, w)
+            epoch = self._position_epoch
+            if self._estimator_problem(capture_time_s):   # attitude not usable is refused by ``lookup``
+                pos = None
         if att is None:
             return None
         agl, source = _height_above_ground(rng, rel, att)
         return VehicleState(time_s=capture_time_s, attitude=Attitude(float(att[0]), float(att[1]), float(att[2])),
                             position_ned_m=None if pos is None else pos.astype(np.float64),
-                            agl_m=agl, agl_source=source)
+                            agl_m=agl, agl_source=source, position_epoch=epoch)
 
     def newest_state(self) -> Optional[VehicleState]:
         """The vehicle state at the newest attitude sample's time (local clock), or None without one."""
@@ -297,6 +382,10 @@ class TelemetryBuffer:
         age = now_s - last
         if age > self.config.fresh_s:
             return TelemetryMatch(None, f"telemetry stale: last attitude {age:.2f} s ago")
+        with self._lock:
+            problem = self._estimator_problem(now_s)
+        if problem.startswith("attitude"):
+            return TelemetryMatch(None, f"the autopilot's estimator reports its {problem}")
         state = self.state_at(capture_time_s)
         if state is None:
             return TelemetryMatch(None, f"no telemetry within {self.config.window_s:g} s of the capture time")

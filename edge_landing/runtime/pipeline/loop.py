@@ -21,7 +21,7 @@ from typing import Optional, TextIO, Tuple
 import numpy as np
 
 from edge_landing.runtime.core.camera import Mount
-from edge_landing.runtime.core.messages import Frame, Prediction, Target
+from edge_landing.runtime.core.messages import Frame, Prediction, Target, VehicleState
 from edge_landing.runtime.core.target_frames import aim_at_pose, aimed, target_ned
 from edge_landing.runtime.fusion.result import FusionResult
 from edge_landing.runtime.io.telemetry import TelemetryMatch
@@ -218,7 +218,7 @@ class Pipeline:
             if said:
                 self.link.send_status(said[:50], severity=4)
             target = self._recheck(target)
-            target, pose_time_s = self._at_newest_pose(target)
+            target, pose_time_s = self._at_newest_pose(target, match.state)
             sent, why = self.link.send_target(target, match.state, clock_lag_s=frame.clock_lag_s)
             if sent:
                 now = time.monotonic() - frame.clock_lag_s   # on the frame's clock (Frame.clock_lag_s)
@@ -251,7 +251,7 @@ class Pipeline:
         return Target.none(target.frame_id, target.capture_time_s,
                            f"held: telemetry stale at send time ({age:.2f} s old)", target.timings_s)
 
-    def _at_newest_pose(self, target: Target) -> Tuple[Target, float]:
+    def _at_newest_pose(self, target: Target, capture: Optional[VehicleState]) -> Tuple[Target, float]:
         """The target's body vector re-expressed from its local NED position at the newest telemetry, and the
         time of the pose it is expressed in (ARCHITECTURE.md §8, §12).
 
@@ -266,6 +266,10 @@ class Pipeline:
         if self.telemetry is None or not target.valid or target.position_ned_m is None:
             return target, target.capture_time_s
         newest = self.telemetry.newest_state()
+        if newest is not None and capture is not None and newest.position_epoch != capture.position_epoch:
+            # The autopilot's frame moved between capture and send: the spot's NED point names another place.
+            return Target.none(target.frame_id, target.capture_time_s, "held: the autopilot's frame moved (a "
+                               "position or heading jump) since the frame was captured", target.timings_s), target.capture_time_s
         if newest is None or newest.position_ned_m is None or newest.time_s < target.capture_time_s:
             return target, target.capture_time_s
         aim = aim_at_pose(np.asarray(target.position_ned_m, np.float64), newest, target.clearance_m, self.options.mount)

@@ -77,6 +77,7 @@ class Continuity:
         self._candidate_frames = 0
         self._contradicting_frames = 0
         self._last_step_s: Optional[float] = None
+        self._epoch = 0                    # VehicleState.position_epoch of the committed spot's frame
 
     def drop(self) -> Optional[str]:
         """Forget the spot; returns an announcement when there was one."""
@@ -94,6 +95,11 @@ class Continuity:
         """
         if state is None:
             return target, self._drop_said("telemetry not fresh")
+        if state.position_epoch != self._epoch:
+            # The autopilot's local frame moved: the spot's NED point now names another place.
+            # The frame's own target was fused in the new frame (fusion starts over on the same change).
+            self._epoch = state.position_epoch
+            return target, self._drop_said("position or heading jumped")
         spot = self.spot
         if target.valid and spot is None:
             beyond = self._beyond_cone(target, state)
