@@ -113,6 +113,17 @@ def test_nan_depth_gives_no_target():
     assert not target.valid and target.frame_id == 3 and "no usable depth" in target.reason
 
 
+def test_absurdly_far_depth_is_dropped_without_overflow():
+    """A patch of 1e30 m (a broken model) must not overflow the normals' float32 products into a fusion error."""
+    render = Scene().render(INTR, MOUNT, Attitude(), (0, 0, -ALT_M))
+    fuser = LandingFuser(CFG, INTR, MOUNT)
+    depth = render.depth_m.copy()
+    depth[20:40, 20:40] = 1e30
+    with np.errstate(all="raise"):
+        target = fuser.update(Prediction(0, 0.0, depth, render.probs()))
+    assert target.valid, target.reason
+
+
 def test_stale_frame_gives_no_target():
     render = Scene().render(INTR, MOUNT, Attitude(), (0, 0, -ALT_M))
     fuser = LandingFuser(CFG, INTR, MOUNT)

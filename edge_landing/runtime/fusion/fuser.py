@@ -56,6 +56,7 @@ __all__ = ["DEGRADED_NO_HVO", "FusionConfig", "LandingFuser"]
 
 log = logging.getLogger(__name__)
 DEGRADED_NO_HVO = "degraded: depth only (no HVO head), confidence lowered"
+_MAX_DEPTH_M = 1.0e4      # far beyond any ground fusion can use (the grid reaches tens of metres)
 
 
 def _resize(a: np.ndarray, hw: tuple[int, int], interpolation: int) -> np.ndarray:
@@ -194,10 +195,11 @@ class LandingFuser:
                 if position.shape != (3,) or not np.all(np.isfinite(position)):
                     return none(f"invalid telemetry: vehicle position must be 3 finite numbers, got {position}")
 
-        # Invalid (NaN, inf, 0 or negative) becomes NaN before resizing so it cannot blend into real depth.
+        # Invalid (NaN, inf, 0, negative or absurdly far) becomes NaN before resizing so it cannot blend into
+        # real depth. The far bound keeps the normals' float32 products finite (1e30 m overflowed them).
         depth = np.asarray(depth, dtype=np.float32)
         with np.errstate(invalid="ignore"):
-            depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(np.nan))
+            depth = np.where((depth > 0) & (depth <= _MAX_DEPTH_M), depth, np.float32(np.nan))
         # Linear, not nearest: it samples the working pixel's centre exactly (nearest is off by half a source
         # pixel, a height bias); NaN spreads to neighbours, which only removes points.
         depth = _resize(depth, cfg.working_hw, cv2.INTER_LINEAR)
