@@ -22,7 +22,7 @@ from tests.test_motion import EFFECTS, MOUNT, _flat_world  # noqa: E402
 
 # The sim flights' camera: at 640×480 the 120×160 window is a quarter of the frame, so a roof fills it.
 INTR = Intrinsics.from_hfov(640, 480)
-ON = SweepConfig(enabled=True)          # opt-in (README, "Roofs"): off in MotionConfig's default
+ON = SweepConfig(enabled=True)          # opt-in (docs/MEASUREMENTS.md, "Roofs"): off in MotionConfig's default
 ROOF_N, ROOF_H, POST_H = 40.0, 15.0, 1.5
 
 

@@ -33,7 +33,7 @@ __all__ = ["SweepConfig", "SweepResult", "sweep_plane"]
 class SweepConfig:
     """Plane-sweep settings (pixels at the motion stage's frame size)."""
 
-    enabled: bool = False         # opt-in: measured on 42 sim flights, it confirmed no roof (README, "Roofs")
+    enabled: bool = False         # opt-in: measured on 42 sim flights, it confirmed no roof (docs/MEASUREMENTS.md, "Roofs")
     scale: float = 0.25           # the window is compared at this share of its size
     step_px: float = 4.0          # adjacent levels move the window's centre this far in the keyframe (at most)
     max_levels: int = 16          # ... unless that needs more levels: then they are spread evenly
