@@ -100,3 +100,27 @@ def test_a_sim_follow_log_is_judged_about_the_autopilots_home(world, tmp_path):
     report = evaluate(TruthConfig(log=str(log), clearance_m=2.0))
     assert (report["targets"], report["safe"]) == (1, 1)
     assert np.hypot(*home[:2]) > 5.0                                  # the offset is not a no-op here
+
+
+def _inside(world, material, margin_m: float = 6.0) -> np.ndarray:
+    """Ground points (n, e) at least ``margin_m`` inside a patch of ``material`` (a 2 m disc lands on it only)."""
+    g = np.arange(-200.0, 200.0, 2.0)
+    n, e = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+    keep = np.ones(n.shape, dtype=bool)
+    for dn in (-margin_m, 0.0, margin_m):
+        for de in (-margin_m, 0.0, margin_m):
+            keep &= world.ground.lookup(n + dn, e + de) == material
+    return np.stack([n[keep], e[keep]], axis=-1)
+
+
+def test_level_water_is_no_landing_spot_but_level_soil_beside_it_is():
+    """Water is level and horizontal by its normals (the paper's labels): only its material makes it unsafe."""
+    rural = sim.build_world("rural", 7202, hazards=True)
+    Material = sim.world.Material
+    water = _inside(rural, Material.WATER)
+    assert len(water) > 0, "the rural world has a canal and ponds"
+    cfg = TruthConfig(log="", clearance_m=2.0)
+    assert check_target(rural, *water[0], cfg) == (False, "water inside the disc")
+    verdicts = [check_target(rural, *p, cfg) for p in _inside(rural, Material.SOIL)[::50]]
+    assert any(ok for ok, _ in verdicts), verdicts     # not vacuous: dry level ground still passes
+    assert all(why != "water inside the disc" for _, why in verdicts)

@@ -3,7 +3,8 @@
 For every target in a ``--log targets.jsonl`` of ``edge-run --camera sim[:STYLE][:SEED]``, vertical rays are
 cast over the disc of the requested clearance radius around the target's local NED position. The target
 counts as safe when every ray hits a horizontal surface (normal within ``horizontal_max_deg`` of up,
-ARCHITECTURE.md §4) and all hits lie within ``max_step_m`` of each other in height (no kerb, car or wall inside).
+ARCHITECTURE.md §4), all hits lie within ``max_step_m`` of each other in height (no kerb, car or wall inside),
+and none is water (level and "horizontal" by its normals, but no place to land).
 
 The world (style, seed) comes from the log's first line, the ``{"run": {...}}`` header edge-run writes
 (``sim_style``, ``sim_seed``); ``--style``/``--seed`` override it, e.g. for an ``edge-sim --flight`` video
@@ -60,6 +61,9 @@ def check_target(world, north_m: float, east_m: float, cfg: TruthConfig) -> tupl
     heights = -1000.0 + t
     if np.ptp(heights) > cfg.max_step_m:
         return False, f"height step {np.ptp(heights):.2f} m inside the disc"
+    from edge_landing.sim.world import Material  # the sim extra, loaded already: ``world`` is one of its worlds
+    if (world.materials_at(prim, pts) == Material.WATER).any():
+        return False, "water inside the disc"
     return True, "ok"
 
 
@@ -139,7 +143,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     a = p.parse_args(argv)
     result = evaluate(TruthConfig(a.log, a.style, a.seed, a.clearance))
     w = result["world"]
-    print(f"{result['safe']}/{result['targets']} targets on ground-truth horizontal, level ground with "
+    print(f"{result['safe']}/{result['targets']} targets on ground-truth horizontal, level, dry ground with "
           f"{a.clearance:.1f} m clearance ({100 * result['safe_share']:.1f} %); {result['frames']} frames; "
           f"world {w['style']} seed {w['seed']} (from {w['from']})")
     for f in result["failures"][:10]:
