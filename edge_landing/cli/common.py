@@ -29,7 +29,7 @@ LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
 EXTRA_MODULES: dict[str, tuple[str, ...]] = {
     "export": ("torch", "onnx", "onnxscript", "tqdm"),
     "sim": ("embreex", "trimesh", "tqdm"),
-    "bench": ("torch", "onnx", "onnxscript", "tqdm", "matplotlib", "psutil", "openvino"),
+    "bench": ("torch", "onnx", "onnxscript", "tqdm", "matplotlib", "psutil", "openvino", "transformers"),
     "openvino": ("openvino",),
 }
 
