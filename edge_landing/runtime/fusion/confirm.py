@@ -81,6 +81,10 @@ class GeometryConfirmation:
         self.motion.reset()
         self.view, self.note, self._last_run_s, self.ran = None, "", None, False
 
+    def begin_frame(self) -> None:
+        """A new fused frame: the stage has not run for it (yet)."""
+        self.ran = False
+
     def run(self, view: Optional[GridView], image: Optional[np.ndarray], state: Optional[VehicleState],
             position: Optional[np.ndarray], t_cap: float,
             focus: Optional[Callable[[], np.ndarray]]) -> Optional[GeometryView]:

@@ -143,7 +143,7 @@ class LandingFuser:
         """Fuse one frame. ``image``: the camera frame (RGB or grey uint8, any size) for motion geometry."""
         t0 = time.perf_counter()
         timings = dict(getattr(pred, "timings_s", None) or {})
-        self._confirm.ran = False          # a frame that stops before geometry did not run the stage
+        self._confirm.begin_frame()        # a frame that stops before geometry did not run the stage
         try:
             target = self._update(pred, state, now_s, timings, image)
         except Exception as exc:  # a flight loop must not die on one frame; the frame gets no target
