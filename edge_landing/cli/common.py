@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import math
 import os
 import sys
 from pathlib import Path
@@ -143,6 +144,50 @@ def output_file(path: str | os.PathLike[str], what: str) -> Path:
     if p.exists() and not os.access(p, os.W_OK):
         raise InputError(f"cannot overwrite {what} {p}: permission denied")
     return p
+
+
+MAX_THREADS = 256     # more threads than any companion computer has cores: a typo, refused before any work
+
+
+def check_number(flag: str, value: float, lo: float | None = None, hi: float | None = None, *,
+                 lo_open: bool = False, unit: str = "") -> float:
+    """``value`` of ``flag`` if it is finite and within [lo, hi] (``lo_open``: lo excluded); else one InputError
+    naming the flag and the value (NaN and inf pass no range check on their own: comparisons with NaN are False)."""
+    ok = isinstance(value, (int, float)) and math.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if lo_open else value >= lo
+    if ok and hi is not None:
+        ok = value <= hi
+    if not ok:
+        low = "" if lo is None else (f"> {lo:g}" if lo_open else f">= {lo:g}")
+        high = "" if hi is None else f"<= {hi:g}"
+        want = " and ".join(w for w in (low, high) if w) or "finite"
+        raise InputError(f"{flag} must be a finite number {want}{' ' + unit if unit else ''}, got {value}")
+    return value
+
+
+def check_threads(flag: str, value: int) -> int:
+    """A thread count: 1 .. MAX_THREADS."""
+    if not 1 <= value <= MAX_THREADS:
+        raise InputError(f"{flag} must be between 1 and {MAX_THREADS}, got {value}")
+    return value
+
+
+def check_outputs_spare_inputs(outputs: dict[str, str | os.PathLike[str] | None],
+                               inputs: dict[str, str | os.PathLike[str] | None]) -> None:
+    """Refuse an output path that names one of the inputs (or another output): writing it would destroy the
+    input (``--log`` given the model's path). Keys are the flags, for the error."""
+    def key(path: str | os.PathLike[str]) -> str:
+        return os.path.realpath(os.fspath(path))
+
+    seen: dict[str, str] = {key(p): flag for flag, p in inputs.items() if p}
+    for flag, path in outputs.items():
+        if not path:
+            continue
+        k = key(path)
+        if k in seen:
+            raise InputError(f"{flag} {path} is the same file as {seen[k]}: writing it would overwrite that")
+        seen[k] = flag
 
 
 def output_folder(path: str | os.PathLike[str], what: str) -> Path:
