@@ -23,6 +23,7 @@ import numpy as np
 
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.fusion.baseline import detectable_heights_m, window_probes
+from edge_landing.runtime.fusion.image_checks import moved_as_posed, predicted_motion_px, textured
 from edge_landing.runtime.fusion.image_motion import ImagePose, estimate_translation, plane_prediction_sigma
 from edge_landing.runtime.fusion.motion_config import (
     POSE_IMAGE,
@@ -174,6 +175,11 @@ class MotionStage:
                 result = self._measure(grey, pose, ref, time_s, window, est)
             else:
                 self.last_reason = est.describe()
+        elif ref is not None and not self._moved_as_posed(grey, pose, window):
+            # Not stored either: a frozen image with a new pose would mislead the pairs that follow.
+            self.last_reason = ("the images did not move as the vehicle did (a frozen camera feed, or telemetry "
+                                "that does not belong to these frames)")
+            return None
         elif ref is not None:
             result = self._measure(grey, pose, ref, time_s, window)
         self.position_ned_m = pose.position_ned_m.copy()
@@ -181,6 +187,20 @@ class MotionStage:
         self._store(_Stored(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source))
         self.last = result
         return result
+
+    def _moved_as_posed(self, grey: np.ndarray, pose: CameraPose, window: tuple[slice, slice]) -> bool:
+        """Whether the window moved against the newest keyframe as the telemetry poses say (image_checks): a
+        frozen feed paired with an older, real keyframe gives a consistent flow read with the wrong pose, and
+        its evidence placed metres away."""
+        newest = self._history[-1]
+        rs, cs = window
+        hom = plane_homography(self.k_cv, pose, newest.pose)[0]
+        shift = np.array([[1.0, 0.0, cs.start], [0.0, 1.0, rs.start], [0.0, 0.0, 1.0]])
+        size = (cs.stop - cs.start, rs.stop - rs.start)
+        wrp = cv2.warpPerspective(newest.grey, hom @ shift, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                  borderMode=cv2.BORDER_REPLICATE)
+        return moved_as_posed(np.ascontiguousarray(grey[rs, cs]), newest.grey[rs, cs], wrp,
+                              predicted_motion_px(hom, rs, cs), self.config.checks)
 
     def _chain(self, grey: np.ndarray, pose: CameraPose, time_s: float) -> CameraPose:
         """Place a frame without telemetry position by its image translation from the newest keyframe.
@@ -310,7 +330,7 @@ class MotionStage:
         return items[pick], float(det[pick])
 
     def _measure(self, grey: np.ndarray, pose: CameraPose, ref: _Stored, time_s: float,
-                 window: tuple[slice, slice], image_pose: Optional[ImagePose] = None) -> ParallaxResult:
+                 window: tuple[slice, slice], image_pose: Optional[ImagePose] = None) -> Optional[ParallaxResult]:
         cfg = self.config
         rs, cs = window
         # A window on a roof is measured against the roof's plane, found from the images (fusion.plane_sweep).
@@ -323,7 +343,14 @@ class MotionStage:
         wh, ww = rs.stop - rs.start, cs.stop - cs.start
         wrp = cv2.warpPerspective(ref.grey, hom @ shift, (ww, wh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                   borderMode=cv2.BORDER_REPLICATE)
-        cur, wrp, rain = self._rain.apply(np.ascontiguousarray(grey[rs, cs]), wrp, time_s)
+        cur = np.ascontiguousarray(grey[rs, cs])
+        # No texture, or images that did not move as the poses did, would read as level ground (image_checks).
+        tex = textured(cur, cfg.checks)
+        if tex.mean() < cfg.checks.min_textured_share:
+            self.last_reason = (f"too little texture to measure ({100 * tex.mean():.0f} % of the window): a blank, "
+                                f"dark or saturated image")
+            return None
+        cur, wrp, rain = self._rain.apply(cur, wrp, time_s)
         flow = np.asarray(self._dis.calc(cur, wrp, None))  # type: ignore[call-overload]
         xx, yy = self._pix[0][rs, cs], self._pix[1][rs, cs]
         mx, my = xx + flow[..., 0], yy + flow[..., 1]
@@ -345,7 +372,7 @@ class MotionStage:
         shape = cur.shape
         # The residual across the epipolar direction is flow error only (parallax lies along it): its robust
         # spread is this pair's flow noise, used when above the configured floor.
-        matched_ok = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error)
+        matched_ok = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error) & tex
         noise_px = cfg.flow_noise_px
         if int(matched_ok.sum()) >= 100:
             noise_px = max(noise_px, 1.4826 * float(np.median(cross[matched_ok])) * f)
@@ -407,7 +434,7 @@ class MotionStage:
         if not sweep.raised and np.any(fit != 0.0) and noise_px <= cfg.max_plane_noise_px and usable.mean() >= 0.5:
             self._ground = (time_s, float(pose.position_ned_m[2] + d - np.median(ground[usable])))
         return ParallaxResult(time_s, rs, cs, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
-                              time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & ~explained,
+                              time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & tex & ~explained,
                               POSE_TELEMETRY if image_pose is None else POSE_IMAGE,
                               0.0 if image_pose is None else image_pose.sigma_m, rain,
                               sweep.ground_m - sweep.level_m)

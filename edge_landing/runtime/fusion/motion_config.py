@@ -12,6 +12,7 @@ import numpy as np
 
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.fusion.image_checks import ImageCheckConfig
 from edge_landing.runtime.fusion.image_motion import ImagePoseConfig
 from edge_landing.runtime.fusion.plane_sweep import SweepConfig
 from edge_landing.runtime.fusion.streaks import StreakConfig
@@ -74,6 +75,7 @@ class MotionConfig:
     image_pose: ImagePoseConfig = ImagePoseConfig()   # the fallback when telemetry has no position
     streaks: StreakConfig = StreakConfig()            # rain streaks filled in before the flow (fusion.streaks)
     sweep: SweepConfig = SweepConfig()                # the plane a window is measured against (fusion.plane_sweep)
+    checks: ImageCheckConfig = ImageCheckConfig()     # texture and moving-as-posed (fusion.image_checks)
 
     def __post_init__(self) -> None:
         h, w = self.window_hw

@@ -1,0 +1,95 @@
+"""Geometry gives no evidence from a blank or frozen camera feed (fusion.image_checks)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from edge_landing.runtime.fusion.image_checks import ImageCheckConfig, moved_as_posed, predicted_motion_px, textured
+
+CFG = ImageCheckConfig()
+
+
+def _texture(h: int = 60, w: int = 80, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.clip(128 + 40 * rng.standard_normal((h, w)), 0, 255).astype(np.uint8)
+
+
+def test_texture_needs_gradients_in_every_direction():
+    assert not textured(np.full((40, 50), 200, np.uint8), CFG).any()          # a "no signal" screen
+    assert not textured(np.full((40, 50), 255, np.uint8), CFG).any()          # clipped white
+    stripes = np.tile((np.arange(50) % 8 * 30).astype(np.uint8), (40, 1))      # texture across only
+    assert textured(stripes, CFG).mean() < 0.05
+    assert textured(_texture(), CFG).mean() > 0.99
+    # One grey level of sensor-like noise is texture enough: a real camera's noise always clears the bar.
+    noise = np.clip(128 + np.random.default_rng(1).standard_normal((40, 50)), 0, 255).astype(np.uint8)
+    assert textured(noise, CFG).mean() > 0.9
+
+
+def test_predicted_motion_is_the_homography_shift():
+    shift = np.array([[1.0, 0.0, 4.0], [0.0, 1.0, -3.0], [0.0, 0.0, 1.0]])
+    assert predicted_motion_px(shift, slice(10, 50), slice(20, 80)) == pytest.approx(5.0)
+    assert predicted_motion_px(np.eye(3), slice(0, 10), slice(0, 10)) == 0.0
+
+
+def test_images_that_did_not_move_as_posed_are_caught():
+    img = _texture(seed=2)
+    moved = np.roll(img, 5, axis=1)
+    # A frozen feed: the same image, while the poses say the ground moved 5 px.
+    assert not moved_as_posed(img, img, moved, 5.0, CFG)
+    # The images moved as the poses said: warping by the poses lines them up.
+    assert moved_as_posed(img, moved, img, 5.0, CFG)
+    # Below the checked motion the two errors differ by noise only: not judged.
+    assert moved_as_posed(img, img, moved, 0.5, CFG)
+
+
+def test_config_is_checked():
+    from edge_landing.runtime.core.errors import InputError
+
+    with pytest.raises(InputError, match="min_texture_grey_px"):
+        ImageCheckConfig(min_texture_grey_px=float("nan"))
+    with pytest.raises(InputError, match="min_textured_share"):
+        ImageCheckConfig(min_textured_share=1.5)
+
+
+pytest.importorskip("embreex")
+from edge_landing.benchmarks.lying_model import lying_prediction  # noqa: E402
+from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser  # noqa: E402
+from tests.test_motion import INTR, MOUNT, _flat_world, _frames  # noqa: E402
+
+PATH = [(-20.0 + 1.5 * k, 0.0, -30.0) for k in range(24)]
+
+
+def _fly_with(images):
+    """The lying model over an open field; ``images(k, rgb)`` gives the frame the stage sees."""
+    world = _flat_world([[30.0, 12.0, 2.0, 1.0, 1.5]])
+    fuser = LandingFuser(FusionConfig(), INTR, MOUNT)
+    out = []
+    for k, t, r, state in _frames(world, PATH):
+        target = fuser.update(lying_prediction(INTR, MOUNT, state, k), state, t, images(k, r.rgb))
+        ran = fuser.geometry_ran
+        out.append((target, fuser.motion.last_reason if ran else "", ran and fuser.motion.last is not None))
+    return out
+
+
+def test_a_blank_feed_confirms_nothing():
+    """A uniform frame gives zero flow and zero flow noise, which would read as level, clear ground."""
+    blank = np.full((INTR.height, INTR.width, 3), (20, 40, 200), np.uint8)      # a capture card's blue screen
+    out = _fly_with(lambda k, rgb: blank)
+    assert not any(t.valid for t, _, _ in out)
+    assert any("too little texture" in why for _, why, _ in out)
+
+
+def test_a_frozen_feed_adds_no_evidence():
+    """The same image again while the vehicle flies on: no pair after the freeze is measured."""
+    frozen = {}
+
+    def images(k, rgb):
+        if k == 10:
+            frozen["rgb"] = rgb
+        return frozen.get("rgb", rgb)
+
+    after = _fly_with(images)[12:]
+    assert not any(measured for _, _, measured in after)
+    assert sum("did not move as the vehicle did" in why for _, why, _ in after) >= 4
+    normal = _fly_with(lambda k, rgb: rgb)                                        # not vacuous: it measures
+    assert sum(measured for _, _, measured in normal[12:]) >= 4 and any(t.valid for t, _, _ in normal)
