@@ -42,7 +42,7 @@ def test_numbers_out_of_range_are_refused(tmp_path, capsys):
     assert not (tmp_path / "s").exists()
     model = tiny_onnx_model(tmp_path / "m.onnx")
     one_line_error(capsys, quantize_main, [str(model), "--calib", str(tmp_path), "--out", str(tmp_path / "q.onnx"),
-                                           "--threads", "0"], "--threads must be at least 1")
+                                           "--threads", "0"], "--threads must be between 1 and 256")
     for flag, value in (("--iterations", "0"), ("--iterations", "-1"), ("--max-seconds", "0"), ("--height", "0")):
         one_line_error(capsys, bench_main, ["--quick", "--models", "safeuav-small", flag, value], flag)
     one_line_error(capsys, bench_main, ["--quick", "--calib", str(tmp_path / "nowhere")], "does not exist")
@@ -113,3 +113,25 @@ def test_missing_export_extra_is_one_line(module, argv):
     err = done.stderr.strip().splitlines()
     assert done.returncode == 2 and len(err) == 1, done.stderr
     assert "pip install 'edge-landing[export]'" in err[0]
+
+
+def test_a_nan_tolerance_cannot_switch_the_int8_gate_off(tmp_path, capsys):
+    model = tiny_onnx_model(tmp_path / "m.onnx")
+    base = [str(model), "--calib", str(tmp_path), "--out", str(tmp_path / "q.onnx")]
+    for flag, value in (("--max-delta1-drop", "nan"), ("--max-miou-drop", "inf"), ("--min-label-agreement", "2")):
+        one_line_error(capsys, quantize_main, base + [flag, value], f"{flag} must be between 0 and 1")
+    assert not (tmp_path / "q.onnx").exists()
+
+
+def test_eval_and_calibrate_never_write_over_the_model(tmp_path, capsys):
+    model = tiny_onnx_model(tmp_path / "m.onnx")
+    before = model.read_bytes()
+    scene = write_tiny_scene(tmp_path / "scene", frames=2)
+    one_line_error(capsys, eval_main, [str(model), str(scene), "--json", str(model)], "is the same file as model")
+    one_line_error(capsys, calibrate_main, [str(scene), "--model", str(model), "--out", str(model)],
+                   "is the same file as --model")
+    assert model.read_bytes() == before
+    for main, argv in ((eval_main, [str(model), str(scene), "--max-depth", "inf"]),
+                       (calibrate_main, [str(scene), "--model", str(model), "--max-depth", "inf"])):
+        one_line_error(capsys, main, argv, "--max-depth must be a finite number")
+    one_line_error(capsys, eval_main, [str(model), str(scene), "--figure-frames", "0"], "--figure-frames")

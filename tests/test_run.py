@@ -85,6 +85,18 @@ def test_truncated_video_ends_cleanly(assets, tmp_path, capsys):
     (["--vehicle-radius", "-1"], "--vehicle-radius"),
     (["--mav", "/dev/ttyUSB0,fast"], "bad baud rate"),
     (["--record", "/nonexistent/dir/o.mp4"], "does not exist"),
+    (["--record", "o.txt"], "needs one of the suffixes"),
+    (["--hold", "nan"], "--hold must be a finite number"),
+    (["--margin", "inf"], "--margin must be a finite number"),
+    (["--duration", "nan"], "--duration"),
+    (["--mount-pitch", "1e9"], "--mount-pitch"),
+    (["--obstacle-height", "nan"], "--obstacle-height"),
+    (["--fps", "nan"], "--fps"),
+    (["--threads", "99999999999999999999"], "--threads must be between 1 and 256"),
+    (["--mav-sysid", "999", "--mav", "udpout:127.0.0.1:9"], "--mav-sysid must be a MAVLink id"),
+    (["--mav-compid", "0"], "--mav-compid"),
+    (["--log", "/proc/version"], "cannot write --log /proc/version"),
+    (["--camera", "sim:bogusstyle"], "unsupported world style 'bogusstyle'"),
 ])
 def test_bad_input_is_one_line_and_exit_2(assets, args, message, capsys):
     argv = ["--camera", assets["video"], "--model", assets["model"]]
@@ -159,3 +171,23 @@ def test_poses_file_errors_are_one_line(assets, tmp_path, capsys):
     bad.write_text("frame,t,north\n0,0,1\n")
     assert main(["--camera", assets["video"], "--model", assets["model"], "--poses", str(bad)]) == 2
     assert "missing column(s)" in capsys.readouterr().err
+
+
+def test_outputs_never_overwrite_inputs(assets, tmp_path, capsys):
+    """--log or --record naming the model, the poses or each other is refused before anything is written."""
+    model = tmp_path / "copy.onnx"
+    model.write_bytes(Path(assets["model"]).read_bytes())
+    before = model.read_bytes()
+    assert main(["--camera", assets["video"], "--model", str(model), "--log", str(model)]) == 2
+    assert "is the same file as --model" in capsys.readouterr().err
+    assert model.read_bytes() == before
+    log = tmp_path / "run.mp4"
+    assert main(["--camera", assets["video"], "--model", str(model), "--log", str(log), "--record", str(log)]) == 2
+    assert "--record" in capsys.readouterr().err and not log.exists()
+
+
+def test_a_poses_file_without_rows_is_refused(assets, tmp_path, capsys):
+    empty = tmp_path / "poses.csv"
+    empty.write_text("frame,t,north,east,down,roll,pitch,yaw,agl\n")
+    assert main(["--camera", assets["video"], "--model", assets["model"], "--poses", str(empty)]) == 2
+    assert "has no rows" in capsys.readouterr().err

@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from typing import Optional, Sequence
 
-from edge_landing.cli.common import CliParser, output_file, run_cli
+from edge_landing.cli.common import CliParser, check_number, check_outputs_spare_inputs, check_threads, output_file, run_cli
 from edge_landing.evaluation.scene import Scene
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.models import default_model_path
@@ -36,12 +36,17 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     if args.max_frames is not None and args.max_frames < 1:
         raise InputError(f"--max-frames must be at least 1, got {args.max_frames}")
-    if args.threads < 1:
-        raise InputError(f"--threads must be at least 1, got {args.threads}")
+    check_threads("--threads", args.threads)
+    for flag, value in (("--min-depth", args.min_depth), ("--max-depth", args.max_depth)):
+        if value is not None:
+            check_number(flag, value, 0.0, lo_open=True, unit="metres")
     scene = Scene(args.scene)
     scene.require(depth=True, purpose="depth-scale calibration (edge-calibrate)")
-    out = output_file(args.out if args.out else scene.path / "calibration.json", "the --out file")
-    model = OnnxModel.load(args.model if args.model else default_model_path(), threads=args.threads)
+    model_path = args.model if args.model else default_model_path()
+    out_path = args.out if args.out else scene.path / "calibration.json"
+    check_outputs_spare_inputs({"--out": out_path}, {"--model": model_path})
+    out = output_file(out_path, "the --out file")
+    model = OnnxModel.load(model_path, threads=args.threads)
     cal = calibrate_scene(scene, model, CalibrationConfig(args.min_depth, args.max_depth, args.max_frames),
                           show_progress=not args.no_progress)
     cal.save(out)

@@ -143,6 +143,14 @@ def output_file(path: str | os.PathLike[str], what: str) -> Path:
     _writable_folder(p.parent if str(p.parent) else Path("."), f"{what} {p}")
     if p.exists() and not os.access(p, os.W_OK):
         raise InputError(f"cannot overwrite {what} {p}: permission denied")
+    if p.exists() and not p.is_file():
+        raise InputError(f"{what} {p} exists and is not a regular file")
+    if p.exists():
+        try:   # opened for appending and closed at once: nothing written, nothing truncated
+            with open(p, "a"):
+                pass
+        except OSError as exc:
+            raise InputError(f"cannot write {what} {p}: {exc.strerror or exc}") from None
     return p
 
 

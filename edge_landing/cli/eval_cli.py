@@ -11,7 +11,15 @@ import json
 import math
 from typing import Any, Callable, Optional, Sequence, Tuple
 
-from edge_landing.cli.common import CliParser, output_file, output_folder, run_cli
+from edge_landing.cli.common import (
+    CliParser,
+    check_number,
+    check_outputs_spare_inputs,
+    check_threads,
+    output_file,
+    output_folder,
+    run_cli,
+)
 from edge_landing.evaluation.evaluate import (
     EvalConfig,
     evaluate_scene,
@@ -223,9 +231,14 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
         raise InputError(f"edge-eval needs at least one model and a scene folder, got only '{args.paths[0]}' "
                          f"(usage: edge-eval MODEL.onnx [MODEL2.onnx …] SCENE)")
     *model_paths, scene_path = args.paths
-    if args.threads < 1:
-        raise InputError(f"--threads must be at least 1, got {args.threads}")
+    check_threads("--threads", args.threads)
+    for flag, value in (("--min-depth", args.min_depth), ("--max-depth", args.max_depth)):
+        if value is not None:
+            check_number(flag, value, 0.0, lo_open=True, unit="metres")
+    if args.figure_frames < 1:
+        raise InputError(f"--figure-frames must be at least 1, got {args.figure_frames}")
     # where the results go is settled before the work, so a bad path does not lose the figures afterwards
+    check_outputs_spare_inputs({"--json": args.json}, {f"model {p}": p for p in model_paths})
     json_path = output_file(args.json, "the --json file") if args.json else None
     figures_dir = output_folder(args.figures, "the --figures folder") if args.figures else None
     scene = Scene(scene_path)

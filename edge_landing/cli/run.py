@@ -21,7 +21,14 @@ from pathlib import Path
 from typing import Any, Dict, Optional, Sequence, TextIO, Tuple, Union
 
 from edge_landing import __version__
-from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.cli.common import (
+    CliParser,
+    check_number,
+    check_outputs_spare_inputs,
+    check_threads,
+    output_file,
+    run_cli,
+)
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
@@ -45,6 +52,7 @@ from edge_landing.runtime.pipeline import (
 )
 
 log = logging.getLogger("edge-run")
+RECORD_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v")   # what OpenCV writes with the mp4v codec here
 
 
 class GridMode(ChoiceEnum):
@@ -100,30 +108,39 @@ class RunConfig:
     allow_unconfirmed: bool = False     # send network-only spots (offline images have no motion)
 
     def __post_init__(self) -> None:
-        if self.hold_s < 0:
-            raise InputError(f"--hold must be >= 0 seconds, got {self.hold_s}")
+        check_number("--hold", self.hold_s, 0.0, unit="seconds")
+        check_number("--duration", self.duration_s, 0.0, unit="seconds")
+        check_number("--vehicle-radius", self.vehicle_radius_m, 0.0, lo_open=True, unit="metres")
+        check_number("--margin", self.margin_m, 0.0, unit="metres")
+        check_number("--obstacle-height", self.obstacle_height_m, 0.0, 10.0, lo_open=True, unit="metres")
+        check_number("--mount-pitch", self.mount_pitch_deg, -90.0, 90.0, unit="degrees")
+        check_threads("--threads", self.threads)
+        if self.fps != 0:
+            check_number("--fps", self.fps, 0.1, 240.0, unit="frames/s (0 = the camera's default)")
+        for flag, value, low in (("--mav-sysid", self.mav_sysid, 1), ("--mav-compid", self.mav_compid, 1),
+                                 ("--mav-target-system", self.mav_target_system, 1)):
+            if value is not None and not low <= value <= 255:
+                raise InputError(f"{flag} must be a MAVLink id between {low} and 255, got {value}")
+        if self.record and Path(self.record).suffix.lower() not in RECORD_SUFFIXES:
+            raise InputError(f"--record {self.record}: the overlay video needs one of the suffixes "
+                             f"{', '.join(RECORD_SUFFIXES)}")
         if self.mav and not self.altitude_scale and not self.calibration:
             raise InputError("--no-altitude-scale with --mav needs --calibration: without either there is no metric "
                              "depth scale, so no target would ever be sent")
         if self.fusion_hz != 0 and not 10.0 <= self.fusion_hz <= 1000.0:
             raise InputError(f"--fusion-hz must be 0 (every frame) or 10-1000: targets must update at 10 Hz or "
                              f"faster, got {self.fusion_hz}")
-        if self.threads < 1:
-            raise InputError(f"--threads must be at least 1, got {self.threads}")
-        if self.vehicle_radius_m <= 0 or self.margin_m < 0:
-            raise InputError(f"--vehicle-radius must be > 0 and --margin >= 0 (metres), got "
-                             f"{self.vehicle_radius_m} and {self.margin_m}")
         if not 0 < self.hfov_deg < 180:
             raise InputError(f"--hfov must be in (0, 180) degrees, got {self.hfov_deg}")
         if self.model and (self.depth_model or self.hvo_model):
             raise InputError("give either --model (one joint model) or --depth-model/--hvo-model, not both")
         if bool(self.depth_model) != bool(self.hvo_model) and not self.model:
             raise InputError("--depth-model and --hvo-model go together (or use --model for a joint model)")
-        if self.max_frames < 0 or self.duration_s < 0:
-            raise InputError("--max-frames and --duration must be >= 0")
-        if self.fps < 0 or self.camera_width < 0 or self.camera_height < 0:
-            raise InputError(f"--fps, --camera-width and --camera-height must be >= 0 (0 = the camera's default), "
-                             f"got {self.fps}, {self.camera_width}, {self.camera_height}")
+        if self.max_frames < 0:
+            raise InputError(f"--max-frames must be >= 0 (0 = no limit), got {self.max_frames}")
+        if self.camera_width < 0 or self.camera_height < 0:
+            raise InputError(f"--camera-width and --camera-height must be >= 0 (0 = the camera's default), "
+                             f"got {self.camera_width}, {self.camera_height}")
         if self.poses and (self.camera == "sim" or self.camera.startswith("sim:")):
             raise InputError("--poses replays a recorded flight's telemetry; the sim camera has its own")
 
@@ -344,11 +361,24 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     cfg = config_from_args(argv)
     for path, what in ((cfg.model, "--model"), (cfg.depth_model, "--depth-model"), (cfg.hvo_model, "--hvo-model"),
                        (cfg.calibration, "--calibration"), (cfg.mav_key, "--mav-key")):
+        if path and Path(path).is_dir():
+            raise InputError(f"{what} {path} is a folder, expected a file")
         if path and not Path(path).is_file():
             raise InputError(f"{what} file {path} does not exist")
     for path, what in ((cfg.record, "--record"), (cfg.log_path, "--log")):
         if path and not Path(path).resolve().parent.is_dir():
             raise InputError(f"{what} {path}: folder {Path(path).resolve().parent} does not exist")
+        if path:
+            output_file(path, what)
+    from edge_landing.runtime.models import default_model_path
+
+    camera = cfg.camera if Path(cfg.camera).is_file() else None
+    shipped = default_model_path()
+    check_outputs_spare_inputs({"--log": cfg.log_path, "--record": cfg.record},
+                               {"the shipped model": shipped, "the shipped INT8 model": shipped.with_suffix(".int8.onnx"),
+                                "--model": cfg.model, "--depth-model": cfg.depth_model, "--hvo-model": cfg.hvo_model,
+                                "--calibration": cfg.calibration, "--mav-key": cfg.mav_key, "--poses": cfg.poses,
+                                "--camera": camera})
     return run(cfg)
 
 

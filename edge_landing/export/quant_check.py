@@ -9,6 +9,7 @@ both pick the same class. Example::
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, List, Sequence, Tuple
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from edge_landing.evaluation.metrics import DepthAccumulator, HvoAccumulator
 from edge_landing.evaluation.scene import Scene
+from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.perception.inference import OnnxModel
 
 FrameRef = Tuple[Scene, str]     # one frame: its scene and its id
@@ -36,6 +38,14 @@ class Tolerance:
     max_hprec_drop: float = 0.02         # HVO precision of 'horizontal' (what landing relies on)
     min_label_agreement: float = 0.90    # share of pixels where INT8 and FP32 pick the same HVO class
 
+    def __post_init__(self) -> None:
+        # A NaN tolerance would pass every comparison and switch the accuracy gate off without a word.
+        for flag, value in (("--max-delta1-drop", self.max_delta1_drop), ("--max-absrel-increase",
+                            self.max_abs_rel_increase), ("--min-depth-agreement", self.min_depth_agreement),
+                            ("--max-miou-drop", self.max_miou_drop), ("--max-hprec-drop", self.max_hprec_drop),
+                            ("--min-label-agreement", self.min_label_agreement)):
+            if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+                raise InputError(f"{flag} must be between 0 and 1, got {value}")
 
 
 def _has_ground_truth(frames: Sequence[FrameRef], folder: str, suffix: str) -> bool:

@@ -389,6 +389,11 @@ def quantize(input: os.PathLike | str, output: os.PathLike | str, config: Quanti
         unknown = [n for n in config.exclude_nodes if n not in names]
         if unknown:
             raise InputError(f"--exclude-node {unknown[0]} is not a node of {src} after pre-processing")
+        op_types = {n.op_type for n in model.graph.node}
+        missing = [t for t in config.float_op_types or () if t not in op_types]
+        if missing:
+            raise InputError(f"--float-op-type {missing[0]}: {src} has no node of that type "
+                             f"(its op types: {', '.join(sorted(op_types))})")
         excluded = list(config.exclude_nodes)
         if float_head and fp32.contract.depth is not None:     # (checked above: float_head implies a depth head)
             excluded += [n for n in depth_head_nodes(model, fp32.contract.depth.output) if n not in excluded]

@@ -17,8 +17,8 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from edge_landing.cli.common import CliParser, output_file, run_cli
-from edge_landing.runtime.core.errors import EdgeError, InputError
+from edge_landing.cli.common import CliParser, check_threads, output_file, run_cli
+from edge_landing.runtime.core.errors import EdgeError
 
 from .quant_speed import SpeedSearch
 from .quantize import (
@@ -131,8 +131,8 @@ def format_report(report: QuantReport) -> str:
 def main_body(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     output_file(args.out, "the --out file")
-    if args.threads is not None and args.threads < 1:
-        raise InputError(f"--threads must be at least 1, got {args.threads}")
+    if args.threads is not None:
+        check_threads("--threads", args.threads)
     tol = Tolerance(args.max_delta1_drop, args.max_absrel_increase, args.min_depth_agreement,
                     args.max_miou_drop, args.max_hprec_drop, args.min_label_agreement)
     config = QuantizeConfig(calib_scene=tuple(args.calib), calib_frames=args.frames, eval_frames=args.eval_frames,

@@ -256,6 +256,7 @@ class SimReader(Reader):
                 seed = int(part)
             elif part:
                 style = part
+        sim.Style.from_string(style)   # an unknown style fails in one line here, before the world is built
         width, height = (config.width, config.height) if config.width and config.height else self.DEFAULT_SIZE
         log.info("building the synthetic %s world (seed %d) for the sim camera...", style, seed)
         self.camera = sim.SimCamera(style=style, seed=seed, width=width, height=height, fps=config.fps or 10.0,
@@ -296,9 +297,12 @@ class PoseReplayReader(Reader):
         from edge_landing.runtime.core.camera import Attitude
         from edge_landing.runtime.io.poses import read_poses_csv
 
+        poses = read_poses_csv(path)
+        if not poses:
+            raise InputError(f"--poses {path} has no rows: a replay needs one pose per frame")
         return [VehicleState(time_s=p.t_s, attitude=Attitude(p.roll_rad, p.pitch_rad, p.yaw_rad),
                              position_ned_m=np.asarray(p.ned_m, dtype=np.float64), agl_m=p.agl_m,
-                             agl_source="poses.csv") for p in read_poses_csv(path)]
+                             agl_source="poses.csv") for p in poses]
 
     def read(self) -> Optional[np.ndarray]:
         rgb = self.inner.read()
