@@ -279,3 +279,12 @@ def test_in_flight_altitude_scale_from_autopilot_telemetry(assets, tmp_path):
     assert scaled and all(d["scale"] == pytest.approx(2.0, rel=0.02) for d in scaled)
     late = [t for t in ap.of_type("LANDING_TARGET")][-3:]
     assert late and all(t.z == pytest.approx(AGL_M, abs=0.3) for t in late)
+
+
+@pytest.mark.parametrize("field, value", [("system_id", 999), ("component_id", 0), ("target_system", 300)])
+def test_link_ids_beyond_one_byte_are_refused(field, value):
+    """MAVLink packs ids in one byte: 999 used to kill the link thread at its first heartbeat."""
+    from edge_landing.runtime.core.errors import InputError
+
+    with pytest.raises(InputError, match="between 1 and 255"):
+        LinkConfig("udpout:127.0.0.1:9", **{field: value})

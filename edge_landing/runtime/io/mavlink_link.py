@@ -77,6 +77,13 @@ class LinkConfig:
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 5.0
 
+    def __post_init__(self) -> None:
+        # MAVLink packs ids in one byte: a larger one would kill the link thread at its first heartbeat.
+        for name, value in (("system id", self.system_id), ("component id", self.component_id),
+                            ("target system", self.target_system)):
+            if value is not None and not 1 <= value <= 255:
+                raise InputError(f"MAVLink {name} must be between 1 and 255, got {value}")
+
 
 class LinkCounts:
     """Thread-safe counters (the pipeline thread sends, the link thread receives)."""
