@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence, Tuple
 
-from edge_landing.cli.common import CliParser, output_folder, run_cli
+from edge_landing.cli.common import CliParser, check_number, check_threads, output_folder, run_cli
 from edge_landing.evaluation.scene import Scene
 from edge_landing.runtime.core.errors import InputError
 
@@ -31,6 +31,7 @@ from .goals import check_goals
 from .speed import SpeedConfig
 
 DEFAULT_OUT = Path("out/bench")   # /out/ is git-ignored
+MAX_SIDE = 4096                   # --height/--width: export.onnx_export.MAX_INPUT_SIDE (that module loads torch)
 
 
 @dataclass(frozen=True)
@@ -79,18 +80,29 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parse_config(argv: Optional[Sequence[str]]) -> BenchConfig:
     a = build_parser().parse_args(argv)
-    if a.threads < 1:
-        raise InputError(f"--threads must be at least 1, got {a.threads}")
-    for flag, value, least in (("--iterations", a.iterations, 1), ("--warmup", a.warmup, 0),
-                               ("--max-seconds", a.max_seconds, 1e-9), ("--calib-frames", a.calib_frames, 1),
-                               ("--eval-frames", a.eval_frames, 1), ("--height", a.height, 16),
-                               ("--width", a.width, 16)):
-        if value is not None and not value >= least:
-            raise InputError(f"{flag} must be {'positive' if least < 1e-6 else f'at least {least}'}, got {value}")
+    check_threads("--threads", a.threads)
+    for flag, value, least, most in (("--iterations", a.iterations, 1, None), ("--warmup", a.warmup, 0, None),
+                                     ("--calib-frames", a.calib_frames, 1, None),
+                                     ("--eval-frames", a.eval_frames, 1, None), ("--height", a.height, 16, MAX_SIDE),
+                                     ("--width", a.width, 16, MAX_SIDE)):
+        if value is not None:
+            check_number(flag, value, least, most)
+    if a.max_seconds is not None:
+        check_number("--max-seconds", a.max_seconds, 0.0, lo_open=True, unit="seconds")
     if a.calib is not None:
-        Scene(a.calib)  # fail now (missing folder, no rgb/) rather than after exporting, or never on a cache hit
-    names = tuple(n.strip() for n in a.models.split(",") if n.strip()) if a.models else (
-        QUICK_MODELS if a.quick else DEFAULT_MODELS)
+        # fail now (missing folder, no rgb/, too few frames) rather than after exporting, or never on a cache hit
+        frames = len(Scene(a.calib))
+        if frames <= a.calib_frames:
+            raise InputError(f"--calib {a.calib}: the scene has {frames} frame(s); --calib-frames {a.calib_frames} "
+                             f"needs at least {a.calib_frames + 1} (the rest are held out for the INT8 agreement): "
+                             f"lower --calib-frames or give a longer scene")
+    if a.models is not None:
+        names = tuple(n.strip() for n in a.models.split(",") if n.strip())
+        if not names:
+            raise InputError(f"--models '{a.models}' names no model; expected a comma-separated list such as "
+                             f"{','.join(DEFAULT_MODELS)} (or leave --models out for that default)")
+    else:
+        names = QUICK_MODELS if a.quick else DEFAULT_MODELS
     lookup(names)
     speed = SpeedConfig(warmup=a.warmup if a.warmup is not None else (1 if a.quick else 3),
                         iterations=a.iterations if a.iterations is not None else (3 if a.quick else 30),
@@ -101,6 +113,8 @@ def parse_config(argv: Optional[Sequence[str]]) -> BenchConfig:
         name, sep, path = item.partition("=")
         if not sep or name not in names:
             raise InputError(f"--checkpoint {item}: expected MODEL=PATH with MODEL one of {', '.join(names)}")
+        if Path(path).is_dir():
+            raise InputError(f"--checkpoint {item}: {path} is a folder, expected a checkpoint file")
         if not Path(path).is_file():
             raise InputError(f"--checkpoint {item}: {path} does not exist")
         checkpoints.append((name, Path(path)))
@@ -214,8 +228,27 @@ def run(config: BenchConfig) -> dict:
     return report
 
 
+def check_sizes(config: BenchConfig) -> None:
+    """Every model's input size must suit its network (--height/--width apply to all): refused before the
+    first export rather than after the models before it were exported."""
+    from edge_landing.export.onnx_export import check_input_size
+    from edge_landing.export.zoo import get_arch
+
+    from .catalog import input_hw
+
+    for m in lookup(config.models):
+        spec = get_arch(m.arch)
+        h, w = input_hw(m, config.prepare)
+        try:
+            check_input_size(spec, h, w)
+            spec.contract(m.task, h, w, **dict(m.options))
+        except InputError as exc:
+            raise InputError(f"--models {m.name} at {h}x{w} (--height/--width): {exc}") from None
+
+
 def _main(argv: Optional[Sequence[str]] = None) -> int:
     config = parse_config(argv)
+    check_sizes(config)
     # Idle OpenMP threads of PyTorch would otherwise spin and slow the next backend (before torch loads).
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     output_folder(config.out, "the --out folder")

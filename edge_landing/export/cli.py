@@ -16,12 +16,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
 
-from edge_landing.cli.common import CliParser, output_file, run_cli
+from edge_landing.cli.common import CliParser, check_number, check_outputs_spare_inputs, output_file, run_cli
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.perception.contract import Task
 
 # (flag attribute, ArchSpec option name)
 _OPTION_FLAGS = (("bins", "bins"), ("min_depth", "min_depth"), ("max_depth", "max_depth"))
+MAX_SIDE = 4096   # onnx_export.MAX_INPUT_SIDE (not imported here: that module loads torch, and --help stays fast)
 
 
 @dataclass(frozen=True)
@@ -83,14 +84,37 @@ def _parse_option(text: str) -> tuple:
     raise InputError(f"--option {name}: value '{value}' is not a number")
 
 
+def _option_flag(name: str) -> str:
+    """The flag that set a build option, for the error: --bins, --min-depth, --max-depth or --option NAME."""
+    return next((f"--{attr.replace('_', '-')}" for attr, opt in _OPTION_FLAGS if opt == name), f"--option {name}")
+
+
+def check_config(config: ExportCliConfig) -> None:
+    """The flags that need no network: sizes, the checkpoint path and the option values (before the export)."""
+    for flag, value in (("--height", config.height), ("--width", config.width)):
+        if value is not None:
+            check_number(flag, value, 1, MAX_SIDE, unit="pixels")
+    if config.checkpoint is not None:
+        if config.checkpoint.is_dir():
+            raise InputError(f"--checkpoint {config.checkpoint} is a folder, expected a checkpoint file (.pth / .pkl)")
+        if not config.checkpoint.is_file():
+            raise InputError(f"--checkpoint {config.checkpoint} does not exist")
+    check_outputs_spare_inputs({"--out": config.out}, {"--checkpoint": config.checkpoint})
+
+
 def _main(argv: Optional[Sequence[str]] = None) -> int:
     config = parse_config(argv)   # without the [export] extra: one line (CliParser checks it after parsing)
+    check_config(config)
     output_file(config.out, "the --out file")
     # torch is imported only here so that --help stays fast
-    from edge_landing.export.onnx_export import ExportSettings, export_onnx
+    from edge_landing.export.onnx_export import ExportSettings, export_onnx, option_problem
     from edge_landing.export.zoo import get_arch
 
     spec = get_arch(config.arch)
+    for name, value in config.options:   # before the network is built (and before the random-weights banner)
+        problem = option_problem(spec, name, value) if name in spec.options else None   # unknown: check_options
+        if problem:
+            raise InputError(f"{_option_flag(name)} {problem}")
     height = config.height if config.height is not None else spec.input_hw[0]
     width = config.width if config.width is not None else spec.input_hw[1]
     report = export_onnx(spec, config.task, config.out, height, width, checkpoint=config.checkpoint,

@@ -16,6 +16,7 @@ nothing behind.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import sys
 import time
@@ -37,6 +38,7 @@ from .zoo.registry import ArchSpec
 
 log = logging.getLogger(__name__)
 MAX_OPSET = 20   # ONNX Runtime's static quantizer does not take newer opsets (ARCHITECTURE.md §9)
+MAX_INPUT_SIDE = 4096   # pixels each way: larger is a typo (100000x100000 float32 would be 120 GB of input alone)
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,19 @@ def check_input_size(spec: ArchSpec, height: int, width: int) -> None:
     if height < spec.min_hw[0] or width < spec.min_hw[1]:
         raise InputError(f"input size {height}x{width} is too small for {spec.name}: at least "
                          f"{spec.min_hw[0]}x{spec.min_hw[1]} expected (default {spec.input_hw[0]}x{spec.input_hw[1]})")
+    if max(height, width) > MAX_INPUT_SIDE:
+        raise InputError(f"input size {height}x{width} is too large: at most {MAX_INPUT_SIDE} pixels each way "
+                         f"(default {spec.input_hw[0]}x{spec.input_hw[1]})")
+
+
+def option_problem(spec: ArchSpec, name: str, value: Any) -> Optional[str]:
+    """What is wrong with one build option's value, or None. Every option of the zoo is a count (channels,
+    bins) or a depth in metres, so finite and > 0; a count (its default is an int) takes whole numbers only."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        return f"must be a finite number > 0, got {value}"
+    if isinstance(spec.options.get(name), int) and not float(value).is_integer():
+        return f"must be a whole number, got {value}"
+    return None
 
 
 def check_options(spec: ArchSpec, options: Optional[Mapping]) -> dict:
@@ -97,6 +112,10 @@ def check_options(spec: ArchSpec, options: Optional[Mapping]) -> dict:
     if unknown:
         accepted = ", ".join(sorted(spec.options)) or "none"
         raise InputError(f"option(s) {', '.join(unknown)} do not apply to {spec.name} (it accepts: {accepted})")
+    for name, value in options.items():
+        problem = option_problem(spec, name, value)
+        if problem:
+            raise InputError(f"option {name} {problem}")
     merged = {**spec.options, **options}
     lo, hi = merged.get("min_depth"), merged.get("max_depth")
     if lo is not None and hi is not None and not 0 < float(lo) < float(hi):

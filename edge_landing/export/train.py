@@ -36,6 +36,7 @@ from edge_landing.runtime.perception.contract import (
 from .augment import AugmentConfig, Augmenter
 from .datasets import SceneSet, check_not_held_out, load_scenes
 from .losses import W_DEPTH, DepthLossSpace, depth_loss, hvo_loss
+from .onnx_export import MAX_INPUT_SIDE, check_input_size
 from .train_record import epoch_summary, export_trained, run_record
 from .zoo import get_arch
 
@@ -211,6 +212,23 @@ def _config_json(cfg: TrainConfig) -> dict:
     return d
 
 
+def check_export_size(spec, task: Task, options: dict, height: Optional[int], width: Optional[int],
+                      train_hw: Tuple[int, int]) -> None:
+    """The ONNX export at the end runs after hours of training: its size must suit the network now (the same
+    rules as edge-export), or the run would overwrite last.pth and then fail."""
+    for flag, value in (("--export-height", height), ("--export-width", width)):
+        if value is not None and not 1 <= value <= MAX_INPUT_SIDE:
+            raise InputError(f"{flag} must be between 1 and {MAX_INPUT_SIDE} pixels, got {value}")
+    h = height if height is not None else train_hw[0]
+    w = width if width is not None else train_hw[1]
+    try:
+        check_input_size(spec, h, w)
+        spec.contract(task, h, w, **options)      # architecture rules (e.g. AdaBins' patch count)
+    except InputError as exc:
+        raise InputError(f"cannot export at {h}x{w} after training (--export-height/--export-width, default the "
+                         f"training size; or --no-export): {exc}") from None
+
+
 def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -241,7 +259,7 @@ def train(cfg: TrainConfig) -> TrainResult:
     task = Task.from_string(cfg.task) if cfg.task else spec.default_task
     if task not in spec.tasks:
         raise InputError(f"{spec.name} has no '{task}' head; expected one of: {', '.join(map(str, spec.tasks))}")
-    if cfg.epochs < 1 or cfg.batch < 1 or not cfg.lr > 0:
+    if cfg.epochs < 1 or cfg.batch < 1 or not (cfg.lr > 0 and math.isfinite(cfg.lr)):
         raise InputError(f"need epochs >= 1, batch >= 1 and lr > 0, got {cfg.epochs}, {cfg.batch}, {cfg.lr}")
     if cfg.max_steps_per_epoch is not None and cfg.max_steps_per_epoch < 1:
         raise InputError(f"--max-steps must be at least 1, got {cfg.max_steps_per_epoch}")
@@ -252,8 +270,12 @@ def train(cfg: TrainConfig) -> TrainResult:
                          f"{max(16, spec.size_multiple)} pixels each way expected")
     if h % spec.size_multiple or w % spec.size_multiple:
         raise InputError(f"training size {h}x{w} does not suit {spec.name}: multiples of {spec.size_multiple} expected")
+    if max(h, w) > MAX_INPUT_SIDE:
+        raise InputError(f"training size {h}x{w} is too large: at most {MAX_INPUT_SIDE} pixels each way")
     options = dict(cfg.options)
     contract = spec.contract(task, h, w, **options)
+    if cfg.export:
+        check_export_size(spec, task, options, cfg.export_height, cfg.export_width, (h, w))
     setup = _Setup(task, contract, tuple(spec.output_names(task)),
                    DepthLossSpace.from_spec(contract.depth) if contract.depth else None, cfg.hvo_weight,
                    cfg.depth_l1_weight)

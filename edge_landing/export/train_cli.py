@@ -16,7 +16,7 @@ import argparse
 from pathlib import Path
 from typing import Sequence
 
-from edge_landing.cli.common import CliParser, output_folder, run_cli
+from edge_landing.cli.common import CliParser, check_number, check_threads, output_folder, run_cli
 from edge_landing.runtime.core.errors import InputError
 
 from .zoo import arch_names
@@ -38,21 +38,51 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init", default=None, metavar="CKPT", help="start from these weights with a fresh schedule")
     p.add_argument("--height", type=int, default=None, help="training height (default: the architecture's)")
     p.add_argument("--width", type=int, default=None, help="training width")
-    p.add_argument("--export-height", type=int, default=None, help="ONNX input height (default: the training height)")
-    p.add_argument("--export-width", type=int, default=None)
-    p.add_argument("--net-width", type=int, default=None, help="edgenet only: base channel width (default 16)")
+    p.add_argument("--export-height", type=int, default=None,
+                   help="ONNX input height (default: the training height); checked before training starts")
+    p.add_argument("--export-width", type=int, default=None, help="ONNX input width (default: the training width)")
+    p.add_argument("--net-width", type=int, default=None, help="edgenet only: base channel width (default 16, at most 256)")
     p.add_argument("--hvo-weight", type=float, default=1.0, help="weight of the HVO cross-entropy")
     p.add_argument("--depth-l1-weight", type=float, default=0.1,
                    help="DenseDepth's λ on the depth L1 term (0.1; larger teaches absolute scale harder)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1: the cores are shared)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads, 1..256 (default 1: the cores are shared)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the initialisation, shuffling and augmentation")
     p.add_argument("--max-steps", type=int, default=None, help="cap on steps per epoch (smoke runs)")
     p.add_argument("--no-augment", action="store_true", help="train without augmentation")
     p.add_argument("--no-export", action="store_true", help="skip the ONNX export at the end")
     p.add_argument("--overwrite", action="store_true", help="start afresh in an --out folder that holds a run")
     p.add_no_progress()
     return p
+
+
+MAX_SEED = 2 ** 32 - 1
+
+
+def check_numbers(args: argparse.Namespace) -> None:
+    """Every number on the command line, before anything is loaded or written (the export size's fit to the
+    architecture is checked by train() before the first epoch)."""
+    from .onnx_export import MAX_INPUT_SIDE
+    from .zoo.edgenet import MAX_CHANNELS
+
+    for flag, value in (("--epochs", args.epochs), ("--batch", args.batch)):
+        if value < 1:
+            raise InputError(f"{flag} must be at least 1, got {value}")
+    check_number("--lr", args.lr, 0.0, lo_open=True)
+    for flag, value in (("--weight-decay", args.weight_decay), ("--hvo-weight", args.hvo_weight),
+                        ("--depth-l1-weight", args.depth_l1_weight)):
+        check_number(flag, value, 0.0)
+    check_threads("--threads", args.threads)
+    if not 0 <= args.seed <= MAX_SEED:
+        raise InputError(f"--seed must be an integer between 0 and {MAX_SEED}, got {args.seed}")
+    for flag, value in (("--export-height", args.export_height), ("--export-width", args.export_width)):
+        if value is not None:
+            check_number(flag, value, 1, MAX_INPUT_SIDE, unit="pixels")
+    if args.net_width is not None:
+        if args.arch != "edgenet":
+            raise InputError(f"--net-width applies to edgenet only, not {args.arch}")
+        if not 1 <= args.net_width <= MAX_CHANNELS:
+            raise InputError(f"--net-width must be between 1 and {MAX_CHANNELS}, got {args.net_width}")
 
 
 def config_from_args(args: argparse.Namespace):
@@ -63,12 +93,13 @@ def config_from_args(args: argparse.Namespace):
     if args.resume and args.init:
         raise InputError("--resume and --init exclude each other (resume continues a run, init starts a new one)")
     for flag, value in (("--resume", args.resume), ("--init", args.init)):
+        if value and Path(value).is_dir():
+            raise InputError(f"{flag} checkpoint {value} is a folder, expected a last.pth/best.pth file")
         if value and not Path(value).is_file():
             raise InputError(f"{flag} checkpoint {value} does not exist")
+    check_numbers(args)
     options: tuple[tuple[str, float], ...] = ()
     if args.net_width is not None:
-        if args.arch != "edgenet":
-            raise InputError(f"--net-width applies to edgenet only, not {args.arch}")
         options = (("channels", int(args.net_width)),)
     return TrainConfig(
         arch=args.arch, task=args.task, train_scenes=tuple(str(s) for s in args.train),

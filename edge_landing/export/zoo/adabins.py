@@ -38,6 +38,7 @@ from .registry import ArchSpec, require_task
 
 OUTPUT_BIN_EDGES = "bin_edges"
 DEFAULT_OPTIONS = {"bins": 256, "min_depth": 1e-3, "max_depth": 10.0}
+MAX_BINS = 4096   # the paper uses 80 and 256
 
 SIZE_MULTIPLE = 32          # every encoder stage then halves the map exactly, as at the authors' sizes
 PATCH_SIZE = 16
@@ -202,6 +203,9 @@ def contract(task: Task, height: int, width: int, **options) -> ModelContract:
     _check_task(task)
     check_input_size(height, width)
     opts = merged_options(DEFAULT_OPTIONS, options)
+    bins = opts["bins"]   # checked here too: the contract comes before the (slow) build
+    if not (float(bins).is_integer() and 2 <= bins <= MAX_BINS):
+        raise InputError(f"adabins bins must be a whole number between 2 and {MAX_BINS}, got {bins}")
     return ModelContract(
         arch="adabins", task=Task.DEPTH,
         input=InputSpec(name=INPUT_NAME, layout=Layout.NCHW, height=height, width=width, scale=1.0 / 255.0,

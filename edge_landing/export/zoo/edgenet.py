@@ -60,6 +60,7 @@ log = logging.getLogger(__name__)
 DEFAULT_OPTIONS = {"channels": 16, "min_depth": 1.0, "max_depth": 1000.0}
 OUTPUT_STRIDE = 2
 SIZE_MULTIPLE = 8   # 1/16 maps may be odd-sized: each decoder step resizes to its skip's exact size
+MAX_CHANNELS = 256  # base width: 16x the default already gives ~100 M parameters; more is a typo
 
 
 class ConvBNReLU(nn.Sequential):
@@ -151,8 +152,15 @@ def build(task: Task = Task.DEPTH_HVO, **options) -> EdgeNet:
                    max_depth=float(opts["max_depth"]))
 
 
+def check_channels(channels) -> None:
+    """The base width must be a whole number 1 .. MAX_CHANNELS (0 or less builds no network, more no sane one)."""
+    if not (float(channels).is_integer() and 1 <= channels <= MAX_CHANNELS):
+        raise InputError(f"edgenet channels must be a whole number between 1 and {MAX_CHANNELS}, got {channels}")
+
+
 def contract(task: Task, height: int, width: int, **options) -> ModelContract:
     opts = merged_options(DEFAULT_OPTIONS, options)
+    check_channels(opts["channels"])   # the contract comes before the build: refused before any work
     return ModelContract(
         arch="edgenet", task=task,
         input=InputSpec(name=INPUT_NAME, layout=Layout.NCHW, height=height, width=width,
