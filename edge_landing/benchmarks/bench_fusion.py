@@ -13,7 +13,6 @@ Fusion with geometry confirmation, on a rendered flight: ``benchmarks.bench_moti
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -23,7 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
-from edge_landing.cli.common import run_cli
+from edge_landing.cli.common import CliParser, check_number, run_cli
 from edge_landing.runtime.core.camera import (
     Attitude,
     Intrinsics,
@@ -120,9 +119,9 @@ def run(cfg: BenchConfig) -> dict:
     }
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _main(argv: Sequence[str] | None = None) -> int:
     d = BenchConfig()
-    ap = argparse.ArgumentParser(prog="bench_fusion", description=__doc__.splitlines()[0])
+    ap = CliParser(prog="bench_fusion", description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=d.frames)
     ap.add_argument("--warmup", type=int, default=d.warmup)
     ap.add_argument("--altitude", type=float, default=d.altitude_m, help="metres above ground")
@@ -131,11 +130,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--mode", default=d.mode, choices=("ned", "vehicle"))
     ap.add_argument("--seed", type=int, default=d.seed)
     a = ap.parse_args(argv)
+    check_number("--altitude", a.altitude, 0.0, 1000.0, lo_open=True, unit="metres")
+    if a.seed < 0:
+        raise InputError(f"--seed must be a non-negative integer, got {a.seed}")
+    for flag, (h, w) in (("--input", a.input), ("--working", a.working)):
+        if not (16 <= h <= 4096 and 16 <= w <= 4096):
+            raise InputError(f"{flag} must be two sizes between 16 and 4096 pixels (H W), got {h} {w}")
     cfg = BenchConfig(frames=a.frames, warmup=a.warmup, altitude_m=a.altitude, input_hw=tuple(a.input),
                       working_hw=tuple(a.working), mode=a.mode, seed=a.seed)
     print(json.dumps(run(cfg)))
     return 0
 
 
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_cli(_main, argv)
+
+
 if __name__ == "__main__":
-    raise SystemExit(run_cli(main))
+    raise SystemExit(main())

@@ -27,8 +27,8 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from edge_landing.benchmarks.resolution_sweep import parse_size
-from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.benchmarks.resolution_sweep import parse_size, refuse_negative_sizes
+from edge_landing.cli.common import CliParser, check_number, check_threads, output_file, run_cli
 from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.cpu_features import cpu_features
 from edge_landing.runtime.core.errors import InputError
@@ -36,6 +36,8 @@ from edge_landing.runtime.core.messages import VehicleState
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from edge_landing.runtime.fusion.motion import CameraPose
 from edge_landing.runtime.pipeline.threads import SideThreads, limit_side_threads
+
+FLIGHT_FRAMES = 200     # the rendered flight's length: --warmup + --frames come from its start
 
 
 def _pct(ms: list[float]) -> dict[str, float]:
@@ -54,7 +56,7 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
     from edge_landing.runtime.pipeline import ScaleStage
     from edge_landing.sim.generate import SimConfig, render_sample, vehicle_samples
 
-    scfg = SimConfig(out=Path("."), frames=200, style=sim.Style.from_string(style), seed=seed, flight=True,
+    scfg = SimConfig(out=Path("."), frames=FLIGHT_FRAMES, style=sim.Style.from_string(style), seed=seed, flight=True,
                      fps=fps, width=width, height=height)
     world = sim.build_world(scfg.style, seed, hazards=True)
     mount, intr = Mount(), scfg.intrinsics
@@ -123,14 +125,29 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
                    help="what fusion gets: the flat-lying model's planar depth at the camera's size (more spots to "
                         "confirm), or the shipped model's own output, metric from the altitude (as edge-run runs it)")
     p.add_argument("--json", help="write the results here")
+    refuse_negative_sizes(argv)
     a = p.parse_args(argv)
-    for name in ("frames", "threads", "opencv_threads"):
-        if getattr(a, name) < 1:
-            raise InputError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(a, name)}")
-    if not (a.fps > 0 and a.warmup >= 0):
-        raise InputError(f"--fps must be > 0 and --warmup >= 0, got {a.fps} and {a.warmup}")
+    if a.frames < 1:
+        raise InputError(f"--frames must be at least 1, got {a.frames}")
+    check_threads("--threads", a.threads)
+    check_threads("--opencv-threads", a.opencv_threads)
+    check_number("--fps", a.fps, 0.1, 240.0, unit="frames/s")
+    if a.warmup < 0:
+        raise InputError(f"--warmup must be >= 0, got {a.warmup}")
+    if a.frames + a.warmup > FLIGHT_FRAMES:
+        raise InputError(f"--frames + --warmup must be <= {FLIGHT_FRAMES} (the flight's frames), got "
+                         f"{a.frames} + {a.warmup}")
+    if a.seed < 0:
+        raise InputError(f"--seed must be a non-negative integer, got {a.seed}")
+    from edge_landing.sim.world import Style
+
+    try:
+        Style.from_string(a.style)
+    except InputError as exc:
+        raise InputError(f"--style: {exc}") from None
     results = []
     sizes = [parse_size(s) for s in a.sizes]          # all checked before the first (slow) render
+    json_path = output_file(a.json, "the --json file") if a.json else None
     for w, h in sizes:
         r = bench_size(w, h, a.frames, a.warmup, a.threads, a.style, a.seed, a.fps, a.opencv_threads, a.network)
         results.append(r)
@@ -148,8 +165,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
             if q is not None:
                 print(f"{'':>8s} fusion on frames {what} a stage run: p50 {q['p50']:.2f} p90 {q['p90']:.2f} "
                       f"p99 {q['p99']:.2f} ms", flush=True)
-    if a.json:
-        Path(a.json).write_text(json.dumps(results, indent=1))
+    if json_path is not None:
+        json_path.write_text(json.dumps(results, indent=1))
     return 0
 
 

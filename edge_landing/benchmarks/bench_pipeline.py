@@ -12,7 +12,6 @@ between modes of the same round, so a noisy shared machine moves all of them tog
 """
 from __future__ import annotations
 
-import argparse
 import io
 import json
 import math
@@ -20,11 +19,12 @@ import socket
 import sys
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
-from edge_landing.cli.common import run_cli
+from edge_landing.cli.common import CliParser, check_outputs_spare_inputs, check_threads, output_file, run_cli
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import VehicleState
@@ -225,7 +225,7 @@ def report(result: dict) -> str:
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
-    p = argparse.ArgumentParser(prog="bench_pipeline", description=__doc__.split("\n\n")[0])
+    p = CliParser(prog="bench_pipeline", description=__doc__.split("\n\n")[0])
     p.add_argument("--model", help="joint depth+HVO model (default: the shipped edgenet)")
     p.add_argument("--depth-model", help="depth model of a pair (with --hvo-model)")
     p.add_argument("--hvo-model", help="HVO model of a pair (with --depth-model)")
@@ -244,14 +244,30 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
         w, h = (int(v) for v in a.size.lower().split("x"))
     except ValueError:
         raise InputError(f"--size must look like 320x240, got '{a.size}'") from None
+    if not (16 <= w <= 4096 and 16 <= h <= 4096):
+        raise InputError(f"--size {a.size}: width and height must be 16..4096 pixels")
     if not 10 <= a.fusion_hz <= 1000:
         raise InputError(f"--fusion-hz must be 10-1000 (targets must update at 10 Hz or faster), got {a.fusion_hz}")
-    if a.frames < 1 or a.rounds < 1:
-        raise InputError("--frames and --rounds must be >= 1")
+    for flag, value in (("--frames", a.frames), ("--rounds", a.rounds)):
+        if value < 1:
+            raise InputError(f"{flag} must be at least 1, got {value}")
+    check_threads("--threads", a.threads)
     if bool(a.depth_model) != bool(a.hvo_model):
         raise InputError("--depth-model and --hvo-model go together")
+    if a.model and a.depth_model:
+        raise InputError("--model and --depth-model/--hvo-model are alternatives: give one")
+    if SourceKind.from_string(a.camera) is SourceKind.FILE and not Path(a.camera).is_file():
+        raise InputError(f"--camera {a.camera} does not exist (expected 'sim', a video, an image folder or a device)")
+    try:
+        runtime = Runtime.from_string(a.runtime)
+    except InputError as exc:
+        raise InputError(f"--runtime: {exc}") from None
+    check_outputs_spare_inputs({"--out": a.out}, {"--model": a.model, "--depth-model": a.depth_model,
+                                                   "--hvo-model": a.hvo_model, "--camera": a.camera})
+    if a.out:
+        output_file(a.out, "the --out file")
     cfg = BenchConfig(a.model, a.camera, a.depth_model, a.hvo_model, a.frames, w, h, a.threads, a.rounds, out=a.out,
-                      fusion_hz=a.fusion_hz, runtime=Runtime.from_string(a.runtime),
+                      fusion_hz=a.fusion_hz, runtime=runtime,
                       cap_side_threads=not a.library_thread_defaults)
     result = bench(cfg)
     print(report(result))

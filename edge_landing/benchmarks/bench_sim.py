@@ -1,13 +1,13 @@
 """Speed of edge-sim: frames/s for random views at 240×320 on one core, after warm-up; prints JSON.
 
-    python benchmarks/bench_sim.py [--style suburban] [--frames 30] [--shadow-stride 1]
+    python -m edge_landing.benchmarks.bench_sim [--style suburban] [--frames 30] [--shadow-stride 1]
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import time
+from typing import Optional, Sequence
 
 # One core: keep numpy's BLAS (and anything else threaded) to one thread before numpy loads.
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -15,9 +15,12 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
+from edge_landing.cli.common import CliParser, run_cli  # noqa: E402
+from edge_landing.runtime.core.errors import InputError  # noqa: E402
 
-def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+
+def _main(argv: Optional[Sequence[str]] = None) -> int:
+    p = CliParser(prog="bench_sim", description=__doc__.splitlines()[0], extra="sim", extra_modules=("embreex",))
     p.add_argument("--style", default="suburban")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--frames", type=int, default=30)
@@ -27,19 +30,27 @@ def main(argv=None) -> dict:
     p.add_argument("--shadow-stride", type=int, default=1)
     p.add_argument("--any-core", action="store_true", help="do not pin the process to one CPU core")
     args = p.parse_args(argv)
-    if not args.any_core and hasattr(os, "sched_setaffinity"):
-        # One core for real: Embree would otherwise build its BVH on every core.
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
     from edge_landing import sim
     from edge_landing.sim.generate import frame_effects, frame_rng
 
+    try:
+        style = sim.Style.from_string(args.style)
+    except InputError as exc:
+        raise InputError(f"--style: {exc}") from None
+    if args.warmup < 0:
+        raise InputError(f"--warmup must be >= 0, got {args.warmup}")
+    # SimConfig checks --frames, --seed, --width, --height and --shadow-stride (one line naming the flag).
+    config = sim.SimConfig(out=".", frames=args.frames, style=style, seed=args.seed,
+                           width=args.width, height=args.height, shadow_stride=args.shadow_stride)
+    if not args.any_core and hasattr(os, "sched_setaffinity"):
+        # One core for real: Embree would otherwise build its BVH on every core.
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
     t0 = time.perf_counter()
-    world = sim.build_world(args.style, args.seed)
+    world = sim.build_world(style, args.seed)
     _ = world.scene                                     # Embree BVH build
     build_s = time.perf_counter() - t0
-    config = sim.SimConfig(out=".", frames=args.frames, style=sim.Style.from_string(args.style), seed=args.seed,
-                           width=args.width, height=args.height, shadow_stride=args.shadow_stride)
     renderer = sim.Renderer(world, config.intrinsics, shadow_stride=args.shadow_stride)
     times = []
     for k in range(args.warmup + args.frames):
@@ -60,8 +71,12 @@ def main(argv=None) -> dict:
                        "mean": round(float(np.mean(ms)), 1)},
     }
     print(json.dumps(report, indent=2))
-    return report
+    return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    return run_cli(_main, argv)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -1,8 +1,8 @@
 """A new user's check of the shipped model, independent of the runtime's own code paths.
 
-Renders fresh scenes with the ``edge-sim`` command (seeds of the user's choosing), then reads the model's
-layout from its ONNX metadata by hand and runs it with a plain ONNX Runtime session: its own preprocessing
-(OpenCV resize, scale, mean/std, layout), its own depth decoding and its own metrics. Nothing from
+Renders fresh scenes with the ``edge-sim`` command (as ``python -m edge_landing.sim.cli``; seeds of the user's
+choosing), then reads the model's layout from its ONNX metadata by hand and runs it with a plain ONNX Runtime
+session: its own preprocessing (OpenCV resize, scale, mean/std, layout), its own depth decoding and its own metrics. Nothing from
 ``edge_landing.runtime.perception.inference``, ``edge_landing.evaluation.metrics`` or
 ``edge_landing.evaluation.evaluate`` is used, so an error there cannot hide here.
 
@@ -13,7 +13,6 @@ and δ1 >= 0.80 after one per-scene median scale, on both styles.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -24,6 +23,9 @@ from typing import Dict, List, Sequence
 import cv2
 import numpy as np
 import onnxruntime as ort
+
+from edge_landing.cli.common import CliParser, check_outputs_spare_inputs, output_folder, run_cli
+from edge_landing.runtime.core.errors import InputError
 
 MODELS = Path(__file__).resolve().parents[1] / "runtime" / "models"
 GOAL_H_PRECISION, GOAL_DELTA1 = 0.90, 0.80
@@ -38,15 +40,19 @@ class SceneSpec:
     def parse(cls, text: str) -> SceneSpec:
         style, _, seed = text.partition(":")
         if style not in ("suburban", "urban") or not seed.isdigit():
-            raise SystemExit(f"check_shipped: scene '{text}' is not STYLE:SEED (style suburban or urban)")
+            raise InputError(f"--seeds: scene '{text}' is not STYLE:SEED (style suburban or urban, seed >= 0)")
         return cls(style, int(seed))
 
 
 def render(spec: SceneSpec, frames: int, root: Path) -> Path:
     out = root / f"{spec.style}{spec.seed}"
     if not (out / "scene.json").is_file():
-        subprocess.run(["edge-sim", str(out), "--frames", str(frames), "--style", spec.style, "--seed",
-                        str(spec.seed), "--no-progress", "--no-normals"], check=True)
+        proc = subprocess.run([sys.executable, "-m", "edge_landing.sim.cli", str(out), "--frames", str(frames),
+                               "--style", spec.style, "--seed", str(spec.seed), "--no-progress", "--no-normals"],
+                              stderr=subprocess.PIPE, text=True)
+        if proc.returncode != 0:
+            last = (proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
+            raise InputError(f"edge-sim could not render {spec.style}:{spec.seed} into {out}: {last}")
     return out
 
 
@@ -54,12 +60,22 @@ class PlainModel:
     """The ONNX file run exactly as its metadata says, with nothing but onnxruntime, numpy and OpenCV."""
 
     def __init__(self, path: Path):
-        self.session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        if not path.is_file():
+            raise InputError(f"--models: model file {path} {'is a folder' if path.is_dir() else 'does not exist'}; "
+                             "expected an ONNX file from edge-export/edge-train")
+        try:
+            self.session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own untyped errors for unreadable files
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise InputError(f"--models: {path} is not a loadable ONNX model ({first[:200]})") from None
         meta = self.session.get_modelmeta().custom_metadata_map
-        self.inp, self.depth, self.hvo = (json.loads(meta[k]) for k in ("edge.input", "edge.depth", "edge.hvo"))
-        if self.depth["convention"] != "metric":
-            raise SystemExit(f"check_shipped: {path} has depth convention {self.depth['convention']}; "
-                             "this check decodes 'metric' only")
+        try:
+            self.inp, self.depth, self.hvo = (json.loads(meta[k]) for k in ("edge.input", "edge.depth", "edge.hvo"))
+            convention = self.depth["convention"]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"--models: {path} has no edge depth+HVO contract in its metadata ({exc!r})") from None
+        if convention != "metric":
+            raise InputError(f"--models: {path} has depth convention {convention}; this check decodes 'metric' only")
 
     def run(self, rgb: np.ndarray):
         """rgb H×W×3 uint8 → (depth metres, HVO labels), both at the image's own size."""
@@ -106,24 +122,24 @@ def score(model: PlainModel, scene: Path) -> Dict[str, float]:
             "delta1_image_scale": float(np.mean(d1_image)), "scene_scale": scale}
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="check_shipped", description=__doc__.split("\n\n")[0])
+def _main(argv: Sequence[str] | None = None) -> int:
+    p = CliParser(prog="check_shipped", description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", nargs="+", default=["suburban:901", "urban:902"], help="STYLE:SEED scenes to render")
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--models", nargs="+", type=Path, default=[MODELS / "edgenet.onnx", MODELS / "edgenet.int8.onnx"])
     p.add_argument("--out", type=Path, default=Path("out/check_shipped"))
     args = p.parse_args(argv)
     specs = [SceneSpec.parse(s) for s in args.seeds]
-    missing = [str(m) for m in args.models if not m.is_file()]
-    if missing:
-        raise SystemExit(f"check_shipped: model file {missing[0]} does not exist; expected an ONNX file from "
-                         f"edge-export/edge-train (default: the shipped edgenet.onnx and edgenet.int8.onnx)")
-    args.out.mkdir(parents=True, exist_ok=True)
+    if args.frames < 1:
+        raise InputError(f"--frames must be at least 1, got {args.frames}")
+    models = {path: PlainModel(path) for path in args.models}    # every model checked before the first render
+    check_outputs_spare_inputs({"--out": args.out / "check.json"}, {f"--models {m}": m for m in args.models})
+    output_folder(args.out, "the --out folder")
     rows: List[dict] = []
     for spec in specs:
         scene = render(spec, args.frames, args.out)
-        for path in args.models:
-            r = {"model": path.name, "scene": f"{spec.style} seed {spec.seed}", **score(PlainModel(path), scene)}
+        for path, model in models.items():
+            r = {"model": path.name, "scene": f"{spec.style} seed {spec.seed}", **score(model, scene)}
             r["meets_goals"] = r["h_precision"] >= GOAL_H_PRECISION and r["delta1_scene_scale"] >= GOAL_DELTA1
             rows.append(r)
             print(f"{r['model']:<20} {r['scene']:<20} H precision {r['h_precision']:.3f}  "
@@ -131,6 +147,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"{'meets' if r['meets_goals'] else 'MISSES'} the goals", flush=True)
     (args.out / "check.json").write_text(json.dumps(rows, indent=1))
     return 0 if all(r["meets_goals"] for r in rows) else 1
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_cli(_main, argv)
 
 
 if __name__ == "__main__":

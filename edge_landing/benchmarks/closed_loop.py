@@ -22,6 +22,7 @@ import json
 import logging
 import math
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -42,13 +43,43 @@ from edge_landing.benchmarks.closed_loop_judge import (
     until_touchdown,
     write_json,
 )
-from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.cli.common import CliParser, check_number, check_threads, output_folder, run_cli
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.io.mavlink_link import Autopilot
 
 log = logging.getLogger("closed_loop")
 MODEL_CMD = ("{python} -m tests.autopilot_model --style {style} --seed {seed} --out udpout:127.0.0.1:{port0} "
              "--out udpout:127.0.0.1:{port1} --out udpout:127.0.0.1:{port2}")
+
+
+MAX_START_M = 1000.0
+
+
+def edge_args(text: str) -> List[str]:
+    """``--edge-args`` split as a shell would, or one InputError naming it."""
+    try:
+        return shlex.split(text)
+    except ValueError as exc:
+        raise InputError(f"--edge-args {text!r}: {exc}") from None
+
+
+def sitl_argv(cfg: LoopConfig) -> List[str]:
+    """``--sitl-cmd`` with its placeholders filled in, split, its program found; or one InputError naming it."""
+    ports = dict(port0=cfg.base_port, port1=cfg.base_port + 1, port2=cfg.base_port + 2)
+    try:
+        cmd = cfg.sitl_cmd.format(python=shlex.quote(sys.executable), style=cfg.style, seed=cfg.seed, **ports)
+    except (KeyError, IndexError, ValueError) as exc:
+        raise InputError(f"--sitl-cmd {cfg.sitl_cmd!r}: bad placeholder {exc} (known: {{python}} {{style}} {{seed}} "
+                         f"{{port0}} {{port1}} {{port2}})") from None
+    try:
+        argv = shlex.split(cmd)
+    except ValueError as exc:
+        raise InputError(f"--sitl-cmd {cfg.sitl_cmd!r}: {exc}") from None
+    if not argv:
+        raise InputError("--sitl-cmd is empty")
+    if shutil.which(argv[0]) is None:
+        raise InputError(f"--sitl-cmd: program {argv[0]} not found or not executable")
+    return argv
 
 
 @dataclass(frozen=True)
@@ -79,10 +110,31 @@ class LoopConfig:
     edge_args: str = ""             # more edge-run flags, e.g. "--int8"
 
     def __post_init__(self) -> None:
+        from edge_landing.sim.world import Style
+
         if not 5.0 <= self.altitude_m <= 120.0:
             raise InputError(f"--altitude must be in [5, 120] m, got {self.altitude_m}")
         if not 1024 <= self.base_port <= 65533:
             raise InputError(f"--base-port must be in [1024, 65533], got {self.base_port}")
+        try:
+            Style.from_string(self.style)
+        except InputError as exc:
+            raise InputError(f"--style: {exc}") from None
+        if self.seed < 0:
+            raise InputError(f"--seed must be a non-negative integer, got {self.seed}")
+        # The start point is flown to and judged in the world around home: within 1 km is plenty.
+        check_number("--start NORTH", self.start_north_m, -MAX_START_M, MAX_START_M, unit="metres")
+        check_number("--start EAST", self.start_east_m, -MAX_START_M, MAX_START_M, unit="metres")
+        check_number("--start YAW_DEG", self.start_yaw_deg, -360.0, 360.0, unit="degrees")
+        # edge-run's own limits (cli/run.py), checked here before any process starts; an upper bound too, since
+        # the judge casts rays over the clearance disc.
+        check_number("--vehicle-radius", self.vehicle_radius_m, 0.0, 20.0, lo_open=True, unit="metres")
+        check_number("--margin", self.margin_m, 0.0, 20.0, unit="metres")
+        check_number("--hold", self.hold_s, 0.0, 3600.0, unit="seconds")
+        check_threads("--threads", self.threads)
+        edge_args(self.edge_args)
+        if self.sitl_cmd:
+            sitl_argv(self)
 
     @property
     def clearance_m(self) -> float:
@@ -262,20 +314,18 @@ def land_once(cfg: LoopConfig) -> LandingResult:
     home_world = place_home(world)
     result = LandingResult(cfg.style, cfg.seed, [round(float(v), 2) for v in
                                                  home_world + (cfg.start_north_m, cfg.start_east_m, -cfg.altitude_m)])
-    ports = dict(port0=cfg.base_port, port1=cfg.base_port + 1, port2=cfg.base_port + 2)
     sitl: Optional[subprocess.Popen[bytes]] = None
     edge: Optional[subprocess.Popen[bytes]] = None
     flight = Flight(cfg.url(0), cfg.autopilot)
     logs = contextlib.ExitStack()
     try:
         if cfg.sitl_cmd:
-            cmd = cfg.sitl_cmd.format(python=shlex.quote(sys.executable), style=cfg.style, seed=cfg.seed, **ports)
-            sitl = _start(shlex.split(cmd), logs.enter_context(open(out / "autopilot.log", "w")))
+            sitl = _start(sitl_argv(cfg), logs.enter_context(open(out / "autopilot.log", "w")))
         edge = _start([sys.executable, "-m", "edge_landing.cli.run", "--camera",
                        f"sim-follow:{cfg.style}:{cfg.seed}@{cfg.url(2)}", "--mav", cfg.url(1),
                        "--autopilot", cfg.autopilot.value, "--log", str(out / "targets.jsonl"),
                        "--vehicle-radius", str(cfg.vehicle_radius_m), "--margin", str(cfg.margin_m),
-                       "--hold", str(cfg.hold_s), "--threads", str(cfg.threads), *shlex.split(cfg.edge_args)],
+                       "--hold", str(cfg.hold_s), "--threads", str(cfg.threads), *edge_args(cfg.edge_args)],
                       logs.enter_context(open(out / "edge-run.log", "w")))
         flight.heartbeat()
         running = edge
@@ -343,6 +393,8 @@ def parse_seeds(text: str) -> List[int]:
         a, _, b = part.partition("-")
         if not a.strip().isdigit() or (b and not b.strip().isdigit()):
             raise InputError(f"--seeds '{text}': expected numbers and ranges like 100-109,120")
+        if b and int(b) < int(a):
+            raise InputError(f"--seeds '{text}': the range {part.strip()} is reversed (expected LOW-HIGH)")
         seeds += list(range(int(a), int(b) + 1)) if b else [int(a)]
     return seeds
 
@@ -395,11 +447,15 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
             raise InputError("--autopilot-model needs a source checkout: run from the repository root "
                              "(tests/autopilot_model.py not found)")
         sitl_cmd = MODEL_CMD
+    if a.runs < 0:
+        raise InputError(f"--runs must be >= 0 (0: one landing from --start), got {a.runs}")
+    seeds = parse_seeds(a.seeds) if a.runs else []
     cfg = LoopConfig(a.style, a.seed, a.out, a.base_port, Autopilot.from_string(a.autopilot), sitl_cmd, a.altitude,
                      a.start[0], a.start[1], a.start[2], a.vehicle_radius, a.margin, hold_s=a.hold, threads=a.threads,
                      edge_args=a.edge_args)
+    output_folder(cfg.out, "the --out folder")
     if a.runs:
-        summary = run_many(cfg, a.runs, parse_seeds(a.seeds))
+        summary = run_many(cfg, a.runs, seeds)
         return 0 if summary["goal_met"] else 1
     r = land_once(cfg)
     print(json.dumps(r.to_json()))

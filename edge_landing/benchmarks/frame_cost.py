@@ -153,8 +153,8 @@ def table(rows: List[Dict[str, Any]]) -> str:
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
-    from edge_landing.benchmarks.resolution_sweep import parse_size
-    from edge_landing.cli.common import CliParser
+    from edge_landing.benchmarks.resolution_sweep import parse_size, refuse_negative_sizes
+    from edge_landing.cli.common import CliParser, check_outputs_spare_inputs, check_threads, output_file
 
     p = CliParser(prog="frame_cost", description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", nargs="+", default=["320x240", "640x480", "1280x720"])
@@ -163,16 +163,22 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--iterations", type=int, default=40)
     p.add_argument("--model", help="ONNX model (default: the shipped edgenet)")
     p.add_argument("--json", help="also write the numbers here")
+    refuse_negative_sizes(argv)
     a = p.parse_args(argv)
-    if a.threads < 1 or a.warmup < 0 or a.iterations < 1:
-        raise InputError(f"--threads and --iterations must be >= 1 and --warmup >= 0, got "
-                         f"{a.threads}, {a.iterations}, {a.warmup}")
+    check_threads("--threads", a.threads)
+    if a.iterations < 1:
+        raise InputError(f"--iterations must be at least 1, got {a.iterations}")
+    if a.warmup < 0:
+        raise InputError(f"--warmup must be >= 0, got {a.warmup}")
     if a.model and not Path(a.model).is_file():
         raise InputError(f"--model file {a.model} does not exist")
-    rows = measure(CostConfig(tuple(parse_size(s) for s in a.sizes), a.threads, a.warmup, a.iterations, model=a.model))
+    sizes = tuple(parse_size(s) for s in a.sizes)
+    check_outputs_spare_inputs({"--json": a.json}, {"--model": a.model})
+    json_path = output_file(a.json, "the --json file") if a.json else None
+    rows = measure(CostConfig(sizes, a.threads, a.warmup, a.iterations, model=a.model))
     print(table(rows))
-    if a.json:
-        Path(a.json).write_text(json.dumps(rows, indent=1))
+    if json_path is not None:
+        json_path.write_text(json.dumps(rows, indent=1))
     return 0 if all(math.isfinite(r["sum"]["p50_ms"]) for r in rows) else 1
 
 

@@ -18,8 +18,8 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-from edge_landing.cli.common import CliParser, run_cli
-from edge_landing.runtime.core.errors import InputError
+from edge_landing.cli.common import CliParser, check_number, output_folder, run_cli
+from edge_landing.runtime.core.errors import ContractError, InputError
 
 MODELS = Path(__file__).resolve().parents[1] / "runtime" / "models"
 
@@ -33,12 +33,25 @@ def _tool(module: str, *args: str) -> None:
 SCENE_FLAGS = ("randomise", "hazards")
 
 
-def scene_folder(out: Path, spec: str, frames: int) -> Path:
+def parse_scene(spec: str) -> list[str]:
+    """``STYLE:SEED[:randomise][:hazards]`` split in its parts, or one InputError naming the spec."""
+    from edge_landing.sim.world import Style
+
     parts = spec.split(":")
     flags = parts[2:]
     if len(parts) < 2 or not parts[0] or not parts[1].isdigit() or any(f not in SCENE_FLAGS for f in flags) \
             or len(set(flags)) != len(flags):
         raise InputError(f"--scene must be STYLE:SEED[:randomise][:hazards], got '{spec}'")
+    try:
+        Style.from_string(parts[0])
+    except InputError as exc:
+        raise InputError(f"--scene '{spec}': {exc}") from None
+    return parts
+
+
+def scene_folder(out: Path, spec: str, frames: int) -> Path:
+    parts = parse_scene(spec)
+    flags = parts[2:]
     folder = out / spec.replace(":", "_")
     if not (folder / "scene.json").exists():
         _tool("edge_landing.sim.cli", str(folder), "--frames", str(frames), "--style", parts[0], "--seed", parts[1],
@@ -83,8 +96,21 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--max-depth", type=float, default=1000.0)
     args = p.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
+    # Everything checked before the first scene is rendered into --out.
+    for spec in args.scene:
+        parse_scene(spec)
+    if args.frames < 1:
+        raise InputError(f"--frames must be at least 1, got {args.frames}")
+    check_number("--max-depth", args.max_depth, 0.0, 1e6, lo_open=True, unit="metres")
     models = [Path(m) for m in (args.model or [MODELS / "edgenet.onnx", MODELS / "edgenet.int8.onnx"])]
+    from edge_landing.runtime.perception.inference import read_contract
+
+    for m in models:
+        try:
+            read_contract(m)
+        except ContractError as exc:
+            raise InputError(f"--model: {exc}") from None
+    output_folder(args.out, "the --out folder")
     rows = [row(m, scene_folder(args.out, s, args.frames), args.out, args.max_depth)
             for s in args.scene for m in models]
     (args.out / "report.json").write_text(json.dumps(rows, indent=1))

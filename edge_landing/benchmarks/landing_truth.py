@@ -24,7 +24,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.cli.common import CliParser, check_number, run_cli
 from edge_landing.runtime.core.errors import InputError
 
 
@@ -100,8 +100,8 @@ def world_of(cfg: TruthConfig, header: Optional[dict[str, Any]]) -> tuple[str, i
                              f"give {missing} of the sim world it was flown in")
         raise InputError(f"{cfg.log} comes from camera '{run.get('camera')}' ({run.get('source_kind')}), not a "
                          f"known sim world; give {missing} if it was rendered by edge-sim")
-    if not isinstance(seed, int) or isinstance(seed, bool):
-        raise InputError(f"{cfg.log}: sim_seed {seed!r} in the run header is not an integer")
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise InputError(f"{cfg.log}: sim_seed {seed!r} in the run header is not a non-negative integer")
     given = [f for f, v in (("--style", cfg.style), ("--seed", cfg.seed)) if v is not None]
     source = ("/".join(given) + (" and the log header" if len(given) < 2 else "")) if given else "the log header"
     return str(style), seed, source
@@ -141,6 +141,16 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--seed", type=int, help="sim world seed (default: the log header's sim_seed)")
     p.add_argument("--clearance", type=float, default=2.0, help="requested clearance radius, metres")
     a = p.parse_args(argv)
+    if a.seed is not None and a.seed < 0:
+        raise InputError(f"--seed must be a non-negative integer, got {a.seed}")
+    if a.style is not None:
+        from edge_landing.sim.world import Style
+
+        try:
+            Style.from_string(a.style)
+        except InputError as exc:
+            raise InputError(f"--style: {exc}") from None
+    check_number("--clearance", a.clearance, 0.0, 50.0, lo_open=True, unit="metres")
     result = evaluate(TruthConfig(a.log, a.style, a.seed, a.clearance))
     w = result["world"]
     print(f"{result['safe']}/{result['targets']} targets on ground-truth horizontal, level, dry ground with "

@@ -27,8 +27,9 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.cli.common import CliParser, check_number, check_outputs_spare_inputs, output_file, run_cli
 from edge_landing.runtime.core.camera import Intrinsics, Mount, ned_from_camera
+from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Prediction, VehicleState
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 
@@ -215,6 +216,28 @@ def _summary(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _check_args(a: argparse.Namespace) -> None:
+    """Every value and both outputs checked before the (long) replay starts."""
+    from edge_landing.sim.world import Style
+
+    try:
+        Style.from_string(a.style)
+    except InputError as exc:
+        raise InputError(f"--style: {exc}") from None
+    if a.seed < 0:
+        raise InputError(f"--seed must be a non-negative integer, got {a.seed}")
+    if a.frames < 1:
+        raise InputError(f"--frames must be at least 1, got {a.frames}")
+    if not all(16 <= v <= 4096 for v in a.size):
+        raise InputError(f"--size must be two sizes between 16 and 4096 pixels (W H), got {a.size[0]} {a.size[1]}")
+    check_number("--obstacle-height", a.obstacle_height, 0.0, 10.0, lo_open=True, unit="metres")
+    check_outputs_spare_inputs({"--json": a.json, "--trace": a.trace}, {})
+    if a.trace:
+        output_file(a.trace, "the --trace file")
+    if a.json:
+        output_file(a.json, "the --json file")
+
+
 def _main(argv: Optional[Sequence[str]] = None) -> int:
     p = CliParser(prog="lying_model", description=__doc__.split("\n\n")[0],
                   formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -229,6 +252,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--json", help="write the result here")
     p.add_argument("--trace", default="", help="write one JSON line per frame and model (reasons, motion figures)")
     a = p.parse_args(argv)
+    _check_args(a)
     result = replay(ReplayConfig(a.style, a.seed, a.frames, models=tuple(a.models),
                                  obstacle_height_m=a.obstacle_height, width=a.size[0], height=a.size[1],
                                  hazards=not a.no_hazards, trace=a.trace, no_position=a.no_position),

@@ -19,7 +19,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.cli.common import CliParser, check_outputs_spare_inputs, output_file, run_cli
+from edge_landing.runtime.core.errors import ContractError, InputError
 
 GOAL_MAX_ERROR = 0.10
 MODELS = Path(__file__).resolve().parents[1] / "runtime" / "models"
@@ -101,14 +102,24 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--seed", type=int, default=905)
     p.add_argument("--out", help="write the figures to this JSON file")
     args = p.parse_args(argv)
+    if args.seed < 0:
+        raise InputError(f"--seed must be a non-negative integer, got {args.seed}")
+    from edge_landing.runtime.perception.inference import read_contract
+
+    try:
+        read_contract(args.model)        # a missing or broken model: one line now, not after the first render
+    except ContractError as exc:
+        raise InputError(f"--model: {exc}") from None
+    check_outputs_spare_inputs({"--out": args.out}, {"--model": args.model})
+    out = output_file(args.out, "the --out file") if args.out else None
     result = run(NadirConfig(model=args.model, seed=args.seed))
     for r in result["views"]:
         print(f"{r['style']:9s} {r['height_m']:5.0f} m  truth top/bottom {r['truth_ratio']:.3f}  "
               f"predicted {r['pred_ratio']:.3f}  error {r['error']:+.3f}")
     print(f"mean |error| {result['mean_abs_error']:.3f}, max {result['max_abs_error']:.3f} "
           f"(goal <= {GOAL_MAX_ERROR}); {len(result['views'])} views")
-    if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1))
+    if out is not None:
+        out.write_text(json.dumps(result, indent=1))
     return 0
 
 

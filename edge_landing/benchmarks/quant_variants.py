@@ -20,9 +20,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import List, Optional, Sequence
 
-from edge_landing.cli.common import CliParser, output_folder, run_cli
+from edge_landing.cli.common import CliParser, check_threads, output_folder, run_cli
 from edge_landing.runtime.core.cpu_features import cpu_features
-from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.errors import ContractError, InputError, SceneError
 
 
 @dataclass(frozen=True)
@@ -150,18 +150,37 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def check_args(a: argparse.Namespace) -> None:
+    """Everything every variant shares, checked once before the first: a bad --calib or frame count is the
+    user's error, not a failed row per variant."""
+    from edge_landing.evaluation.scene import Scene
+    from edge_landing.export.quantize import split_frames
+
+    for flag, value in (("--frames", a.frames), ("--eval-frames", a.eval_frames), ("--iterations", a.iterations)):
+        if value < 1:
+            raise InputError(f"{flag} must be at least 1, got {value}")
+    check_threads("--threads", a.threads)
+    try:
+        split_frames([Scene(p) for p in a.calib], a.frames, a.eval_frames)
+    except SceneError as exc:
+        raise InputError(f"--calib: {exc}") from None
+
+
 def _main(argv: Optional[Sequence[str]] = None) -> int:
     import onnxruntime
 
     a = build_parser().parse_args(argv)
+    check_args(a)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     output_folder(a.out, "the --out folder")
-    a.out.mkdir(parents=True, exist_ok=True)
     fp32 = _fp32_file(a.model, a.out)
-    rows = quantize_variants(fp32, list(a.calib), a.out, a.frames, a.eval_frames)
     from edge_landing.runtime.perception.inference import read_contract
 
-    c = read_contract(fp32)
+    try:
+        c = read_contract(fp32)          # before any variant: a broken model is one line, not eight failed rows
+    except ContractError as exc:
+        raise InputError(f"model: {exc}") from None
+    rows = quantize_variants(fp32, list(a.calib), a.out, a.frames, a.eval_frames)
     result = {"model": Path(a.model).name, "input": f"{c.input.height}x{c.input.width}", "threads": a.threads,
               "iterations": a.iterations, "cpu": cpu_features().summary(), "isa": cpu_features().to_json(),
               "onnxruntime": onnxruntime.__version__, "load_average": list(os.getloadavg()), "variants": rows,

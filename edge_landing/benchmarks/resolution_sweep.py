@@ -222,8 +222,19 @@ def parse_size(text: str) -> Tuple[int, int]:
     return w, h
 
 
+def refuse_negative_sizes(argv: Optional[Sequence[str]]) -> None:
+    """argparse takes ``--sizes -640x480``'s value for an option and says only "expected at least one argument":
+    name the value instead (call before parsing)."""
+    import re
+    import sys
+
+    for token in sys.argv[1:] if argv is None else argv:
+        if re.fullmatch(r"-\d+x-?\d+", str(token), flags=re.IGNORECASE):
+            parse_size(token)
+
+
 def _main(argv: Optional[Sequence[str]] = None) -> int:
-    from edge_landing.cli.common import CliParser
+    from edge_landing.cli.common import CliParser, output_file, output_folder
 
     p = CliParser(prog="resolution_sweep", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default="/tmp/edge_resolution_sweep", help="render cache folder")
@@ -235,15 +246,28 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--network-only", action="store_true", help="count every network spot (no motion geometry), "
                    "to compare the network alone across sizes")
     p.add_argument("--json", help="also write the results here")
+    refuse_negative_sizes(argv)
     a = p.parse_args(argv)
     if a.frames < 10:
         raise InputError(f"--frames must be at least 10 (a flight needs approach, hover and descent), got {a.frames}")
+    for seed in a.seeds:
+        if seed < 0:
+            raise InputError(f"--seeds must be non-negative integers, got {seed}")
+    from edge_landing.sim.world import Style
+
+    for style in a.styles:
+        try:
+            Style.from_string(style)
+        except InputError as exc:
+            raise InputError(f"--styles: {exc}") from None
     config = SweepConfig(Path(a.out), tuple(a.styles), tuple(a.seeds), tuple(parse_size(s) for s in a.sizes),
                          a.frames, video=not a.png, geometry=not a.network_only)
+    output_folder(a.out, "the --out folder")
+    json_path = output_file(a.json, "the --json file") if a.json else None
     results = sweep(config)
     print(table(results))
-    if a.json:
-        Path(a.json).write_text(json.dumps([{**asdict(r), "safe_share": r.safe_share} for r in results], indent=1))
+    if json_path is not None:
+        json_path.write_text(json.dumps([{**asdict(r), "safe_share": r.safe_share} for r in results], indent=1))
     return 0
 
 

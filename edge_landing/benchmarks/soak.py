@@ -12,7 +12,6 @@ memory over the window after warm-up (the issue's bar: < 1 MB over the last 8 mi
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -22,19 +21,21 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from edge_landing.benchmarks.flat_model import flat_ground_model
+from edge_landing.cli.common import CliParser, check_number, check_outputs_spare_inputs, output_file, run_cli
 from edge_landing.runtime.core.camera import Intrinsics, Mount
+from edge_landing.runtime.core.errors import ContractError, InputError
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_conn import load_mavutil
 from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
 from edge_landing.runtime.io.sources import Reader, SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
-from edge_landing.runtime.perception.inference import OnnxModel
+from edge_landing.runtime.perception.inference import OnnxModel, read_contract
 from edge_landing.runtime.perception.scale import AltitudeScaleEstimator
 from edge_landing.runtime.pipeline import FrameCheck, JointInference, Pipeline, PipelineOptions, ScaleStage
 
@@ -192,19 +193,31 @@ def soak(cfg: SoakConfig, out: Any = sys.stdout) -> Dict[str, Any]:
     return result
 
 
-def main(argv: Optional[List[str]] = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m edge_landing.benchmarks.soak", description=__doc__.split("\n\n")[0])
+def _main(argv: Optional[Sequence[str]] = None) -> int:
+    p = CliParser(prog="soak", description=__doc__.split("\n\n")[0])
     p.add_argument("--minutes", type=float, default=10.0)
     p.add_argument("--fps", type=float, default=30.0)
     p.add_argument("--sample", type=float, default=5.0, help="seconds between memory samples")
     p.add_argument("--model", help="an ONNX model with the edge contract (default: a tiny flat-ground graph)")
     p.add_argument("--json", dest="json_out")
     a = p.parse_args(argv)
-    if a.minutes <= 0 or a.fps <= 0 or a.sample <= 0:
-        print("soak: --minutes, --fps and --sample must be > 0", file=sys.stderr)
-        return 2
+    check_number("--minutes", a.minutes, 0.0, 24 * 60.0, lo_open=True, unit="minutes")
+    check_number("--fps", a.fps, 0.1, 240.0, unit="frames/s")
+    check_number("--sample", a.sample, 0.0, 3600.0, lo_open=True, unit="seconds")
+    if a.model:
+        try:
+            read_contract(a.model)        # a missing, broken or contract-less model: one line, before the soak
+        except ContractError as exc:
+            raise InputError(f"--model: {exc}") from None
+    check_outputs_spare_inputs({"--json": a.json_out}, {"--model": a.model})
+    if a.json_out:
+        output_file(a.json_out, "the --json file")
     r = soak(SoakConfig(minutes=a.minutes, fps=a.fps, sample_s=a.sample, model=a.model, json_out=a.json_out))
     return 0 if r["verdict"] == "FLAT" and r["fps"] >= 25 else 1
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    return run_cli(_main, argv)
 
 
 if __name__ == "__main__":
