@@ -7,7 +7,9 @@ Motion geometry reads "no parallax" as "level ground". Two inputs give no parall
   random flow, which the pair's own noise estimate already refuses; without noise nothing does. A pixel is
   textured when the weakest direction of its local image gradient (the smaller eigenvalue of the structure
   tensor over a small box, as RMS grey levels per pixel) reaches ``min_texture_grey_px``. Ground of any kind
-  seen by a real camera, and every rendered ground material of the sim, clears it many times over.
+  seen by a real camera, and every rendered ground material of the sim, clears it many times over. A
+  textureless pixel may still report an obstacle (a smooth wall's face reads partly high) but cannot confirm,
+  like a pixel whose DIS patch is too large (fusion.motion).
 - **Images that did not move as the vehicle did.** A frozen feed (the camera or its driver repeating the last
   image) or telemetry that does not belong to the frames: the poses predict that the ground moved by several
   pixels, yet the reference image matches the current one better where it was than where the poses put it.

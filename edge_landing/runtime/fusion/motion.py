@@ -372,10 +372,11 @@ class MotionStage:
         shape = cur.shape
         # The residual across the epipolar direction is flow error only (parallax lies along it): its robust
         # spread is this pair's flow noise, used when above the configured floor.
-        matched_ok = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error) & tex
+        # Textureless pixels are left out: their flow is filled in from around them, with no residual of its own.
+        matched_ok = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error)
         noise_px = cfg.flow_noise_px
-        if int(matched_ok.sum()) >= 100:
-            noise_px = max(noise_px, 1.4826 * float(np.median(cross[matched_ok])) * f)
+        if int((matched_ok & tex).sum()) >= 100:
+            noise_px = max(noise_px, 1.4826 * float(np.median(cross[matched_ok & tex])) * f)
         explained = matched_ok & (cross * f <= max(cfg.max_cross_parallax_px, 3 * noise_px))
         # NED point of each pixel at its measured height (the plane point where the flow is not trusted). The
         # height may be negative (ground below the plane: the point is farther along its ray than the plane's).
@@ -419,7 +420,9 @@ class MotionStage:
         height = np.where(reliable, local, np.nan).astype(np.float32)
         patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)
         rng = np.sqrt(np.sum((ned - pose.position_ned_m[:, None, None]) ** 2, axis=0))
-        resolved = patch_px * rng / f <= cfg.max_patch_footprint_m
+        # A textureless pixel, like one whose patch is too large, may report an obstacle but not confirm: its
+        # flow is its neighbours' (a smooth wall's face still reads partly high; a blank image reads level).
+        resolved = (patch_px * rng / f <= cfg.max_patch_footprint_m) & tex
         if sweep.verified is not None:   # on a roof's plane, only what matches that plane confirms
             resolved &= sweep.verified
         if cfg.overhang_check_m > 0:   # ground seen under a crown or eaves cannot confirm
@@ -434,7 +437,7 @@ class MotionStage:
         if not sweep.raised and np.any(fit != 0.0) and noise_px <= cfg.max_plane_noise_px and usable.mean() >= 0.5:
             self._ground = (time_s, float(pose.position_ned_m[2] + d - np.median(ground[usable])))
         return ParallaxResult(time_s, rs, cs, height, sigma0.astype(np.float32), detectable, out_ned, baseline,
-                              time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & tex & ~explained,
+                              time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & ~explained,
                               POSE_TELEMETRY if image_pose is None else POSE_IMAGE,
                               0.0 if image_pose is None else image_pose.sigma_m, rain,
                               sweep.ground_m - sweep.level_m)
