@@ -60,3 +60,14 @@ def tiny_onnx_model(path: Path, height: int = 16, width: int = 24, task: Task = 
     onnx.checker.check_model(model)
     onnx.save(model, str(path))
     return path
+
+
+def one_line_error(capsys, main, argv, *expected: str) -> str:
+    """Run a CLI ``main(argv)``: exit 2, exactly one stderr line holding every ``expected`` text, no traceback
+    or usage dump (ARCHITECTURE.md §10). Returns the line."""
+    assert main([str(a) for a in argv]) == 2, argv
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and "usage:" not in err, err
+    for text in expected:
+        assert text in err, err
+    return err

@@ -25,18 +25,9 @@ from edge_landing.benchmarks import (
     resolution_sweep,
     soak,
 )
-from tests.helpers import tiny_onnx_model
+from tests.helpers import one_line_error, tiny_onnx_model
 
 KEEP = "known text that must survive\n"
-
-
-def one_line_error(capsys, main, argv, *expected: str) -> str:
-    assert main([str(a) for a in argv]) == 2, argv
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "Traceback" not in err and "usage:" not in err, err
-    for text in expected:
-        assert text in err, err
-    return err
 
 
 @pytest.fixture

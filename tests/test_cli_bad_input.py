@@ -13,15 +13,8 @@ from edge_landing.runtime.perception.contract import Task
 from edge_landing.runtime.perception.inference import OnnxModel
 from edge_landing.runtime.pipeline import JointInference, PairInference
 from edge_landing.sim.cli import main as sim_main
-from tests.helpers import tiny_onnx_model
+from tests.helpers import one_line_error, tiny_onnx_model
 from tests.test_train import write_tiny_scene
-
-
-def one_line_error(capsys, main, argv, expected: str) -> str:
-    assert main(argv) == 2, argv
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and expected in err and "Traceback" not in err, err
-    return err
 
 
 @pytest.mark.parametrize("main,argv,expected", [

@@ -9,14 +9,8 @@ pytest.importorskip("torch")
 from edge_landing.benchmarks.cli import main as bench_main  # noqa: E402
 from edge_landing.export.cli import main as export_main  # noqa: E402
 from edge_landing.export.train_cli import main as train_main  # noqa: E402
+from tests.helpers import one_line_error  # noqa: E402
 from tests.test_train import write_tiny_scene  # noqa: E402
-
-
-def one_line_error(capsys, main, argv, expected: str) -> str:
-    assert main(argv) == 2, argv
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and expected in err and "Traceback" not in err, err
-    return err
 
 
 @pytest.mark.parametrize("extra,expected", [

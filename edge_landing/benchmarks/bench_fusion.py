@@ -22,7 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
-from edge_landing.cli.common import CliParser, check_number, run_cli
+from edge_landing.cli.common import CliParser, check_number, check_seed, run_cli
 from edge_landing.runtime.core.camera import (
     Attitude,
     Intrinsics,
@@ -131,8 +131,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=d.seed)
     a = ap.parse_args(argv)
     check_number("--altitude", a.altitude, 0.0, 1000.0, lo_open=True, unit="metres")
-    if a.seed < 0:
-        raise InputError(f"--seed must be a non-negative integer, got {a.seed}")
+    check_seed("--seed", a.seed)
     for flag, (h, w) in (("--input", a.input), ("--working", a.working)):
         if not (16 <= h <= 4096 and 16 <= w <= 4096):
             raise InputError(f"{flag} must be two sizes between 16 and 4096 pixels (H W), got {h} {w}")

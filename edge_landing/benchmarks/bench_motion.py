@@ -28,7 +28,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from edge_landing.benchmarks.resolution_sweep import parse_size, refuse_negative_sizes
-from edge_landing.cli.common import CliParser, check_number, check_threads, output_file, run_cli
+from edge_landing.cli.common import CliParser, check_choice, check_number, check_seed, check_threads, output_file, run_cli
 from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.cpu_features import cpu_features
 from edge_landing.runtime.core.errors import InputError
@@ -137,14 +137,10 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     if a.frames + a.warmup > FLIGHT_FRAMES:
         raise InputError(f"--frames + --warmup must be <= {FLIGHT_FRAMES} (the flight's frames), got "
                          f"{a.frames} + {a.warmup}")
-    if a.seed < 0:
-        raise InputError(f"--seed must be a non-negative integer, got {a.seed}")
+    check_seed("--seed", a.seed)
     from edge_landing.sim.world import Style
 
-    try:
-        Style.from_string(a.style)
-    except InputError as exc:
-        raise InputError(f"--style: {exc}") from None
+    check_choice("--style", Style.from_string, a.style)
     results = []
     sizes = [parse_size(s) for s in a.sizes]          # all checked before the first (slow) render
     json_path = output_file(a.json, "the --json file") if a.json else None

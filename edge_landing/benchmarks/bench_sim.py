@@ -15,7 +15,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
-from edge_landing.cli.common import CliParser, run_cli  # noqa: E402
+from edge_landing.cli.common import CliParser, check_choice, run_cli  # noqa: E402
 from edge_landing.runtime.core.errors import InputError  # noqa: E402
 
 
@@ -34,10 +34,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     from edge_landing import sim
     from edge_landing.sim.generate import frame_effects, frame_rng
 
-    try:
-        style = sim.Style.from_string(args.style)
-    except InputError as exc:
-        raise InputError(f"--style: {exc}") from None
+    style = check_choice("--style", sim.Style.from_string, args.style)
     if args.warmup < 0:
         raise InputError(f"--warmup must be >= 0, got {args.warmup}")
     # SimConfig checks --frames, --seed, --width, --height and --shadow-stride (one line naming the flag).

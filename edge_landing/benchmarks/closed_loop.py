@@ -43,7 +43,7 @@ from edge_landing.benchmarks.closed_loop_judge import (
     until_touchdown,
     write_json,
 )
-from edge_landing.cli.common import CliParser, check_number, check_threads, output_folder, run_cli
+from edge_landing.cli.common import CliParser, check_choice, check_number, check_seed, check_threads, output_folder, run_cli
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.io.mavlink_link import Autopilot
 
@@ -116,12 +116,8 @@ class LoopConfig:
             raise InputError(f"--altitude must be in [5, 120] m, got {self.altitude_m}")
         if not 1024 <= self.base_port <= 65533:
             raise InputError(f"--base-port must be in [1024, 65533], got {self.base_port}")
-        try:
-            Style.from_string(self.style)
-        except InputError as exc:
-            raise InputError(f"--style: {exc}") from None
-        if self.seed < 0:
-            raise InputError(f"--seed must be a non-negative integer, got {self.seed}")
+        check_choice("--style", Style.from_string, self.style)
+        check_seed("--seed", self.seed)
         # The start point is flown to and judged in the world around home: within 1 km is plenty.
         check_number("--start NORTH", self.start_north_m, -MAX_START_M, MAX_START_M, unit="metres")
         check_number("--start EAST", self.start_east_m, -MAX_START_M, MAX_START_M, unit="metres")

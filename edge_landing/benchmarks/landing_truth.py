@@ -24,7 +24,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from edge_landing.cli.common import CliParser, check_number, run_cli
+from edge_landing.cli.common import CliParser, check_choice, check_number, check_seed, run_cli
 from edge_landing.runtime.core.errors import InputError
 
 
@@ -141,15 +141,12 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--seed", type=int, help="sim world seed (default: the log header's sim_seed)")
     p.add_argument("--clearance", type=float, default=2.0, help="requested clearance radius, metres")
     a = p.parse_args(argv)
-    if a.seed is not None and a.seed < 0:
-        raise InputError(f"--seed must be a non-negative integer, got {a.seed}")
+    if a.seed is not None:
+        check_seed("--seed", a.seed)
     if a.style is not None:
         from edge_landing.sim.world import Style
 
-        try:
-            Style.from_string(a.style)
-        except InputError as exc:
-            raise InputError(f"--style: {exc}") from None
+        check_choice("--style", Style.from_string, a.style)
     check_number("--clearance", a.clearance, 0.0, 50.0, lo_open=True, unit="metres")
     result = evaluate(TruthConfig(a.log, a.style, a.seed, a.clearance))
     w = result["world"]

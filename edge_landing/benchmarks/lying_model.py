@@ -27,7 +27,15 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from edge_landing.cli.common import CliParser, check_number, check_outputs_spare_inputs, output_file, run_cli
+from edge_landing.cli.common import (
+    CliParser,
+    check_choice,
+    check_number,
+    check_outputs_spare_inputs,
+    check_seed,
+    output_file,
+    run_cli,
+)
 from edge_landing.runtime.core.camera import Intrinsics, Mount, ned_from_camera
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Prediction, VehicleState
@@ -220,12 +228,8 @@ def _check_args(a: argparse.Namespace) -> None:
     """Every value and both outputs checked before the (long) replay starts."""
     from edge_landing.sim.world import Style
 
-    try:
-        Style.from_string(a.style)
-    except InputError as exc:
-        raise InputError(f"--style: {exc}") from None
-    if a.seed < 0:
-        raise InputError(f"--seed must be a non-negative integer, got {a.seed}")
+    check_choice("--style", Style.from_string, a.style)
+    check_seed("--seed", a.seed)
     if a.frames < 1:
         raise InputError(f"--frames must be at least 1, got {a.frames}")
     if not all(16 <= v <= 4096 for v in a.size):

@@ -19,7 +19,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from edge_landing.cli.common import CliParser, check_outputs_spare_inputs, output_file, run_cli
+from edge_landing.cli.common import CliParser, check_outputs_spare_inputs, check_seed, output_file, run_cli
 from edge_landing.runtime.core.errors import ContractError, InputError
 
 GOAL_MAX_ERROR = 0.10
@@ -102,8 +102,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--seed", type=int, default=905)
     p.add_argument("--out", help="write the figures to this JSON file")
     args = p.parse_args(argv)
-    if args.seed < 0:
-        raise InputError(f"--seed must be a non-negative integer, got {args.seed}")
+    check_seed("--seed", args.seed)
     from edge_landing.runtime.perception.inference import read_contract
 
     try:

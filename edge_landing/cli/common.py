@@ -15,11 +15,12 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Any, Callable, NoReturn, Sequence
+from typing import Any, Callable, NoReturn, Sequence, TypeVar
 
 from edge_landing import __version__
 from edge_landing.runtime.core.errors import EdgeError, InputError, MissingExtraError
 
+T = TypeVar("T")
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
@@ -172,6 +173,21 @@ def check_number(flag: str, value: float, lo: float | None = None, hi: float | N
         want = " and ".join(w for w in (low, high) if w) or "finite"
         raise InputError(f"{flag} must be a finite number {want}{' ' + unit if unit else ''}, got {value}")
     return value
+
+
+def check_seed(flag: str, value: int) -> int:
+    """A random seed: a non-negative integer (numpy's generators refuse negative ones with a traceback)."""
+    if value < 0:
+        raise InputError(f"{flag} must be a non-negative integer, got {value}")
+    return value
+
+
+def check_choice(flag: str, parse: Callable[[str], T], text: str) -> T:
+    """``parse(text)`` (e.g. ``Style.from_string``), its one-line InputError prefixed with the flag."""
+    try:
+        return parse(text)
+    except InputError as exc:
+        raise InputError(f"{flag}: {exc}") from None
 
 
 def check_threads(flag: str, value: int) -> int:
