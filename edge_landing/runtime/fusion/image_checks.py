@@ -11,8 +11,8 @@ Motion geometry reads "no parallax" as "level ground". Two inputs give no parall
   textureless pixel may still report an obstacle (a smooth wall's face reads partly high) but cannot confirm,
   like a pixel whose DIS patch is too large (fusion.motion).
 - **Images that did not move as the vehicle did.** A frozen feed (the camera or its driver repeating the last
-  image) or telemetry that does not belong to the frames: the poses predict that the ground moved by several
-  pixels, yet the reference image matches the current one better where it was than where the poses put it.
+  image) or telemetry that does not belong to the frames: the poses predict that the ground moved by a pixel or
+  more, yet the reference image matches the current one better where it was than where the poses put it.
 
 Pure numpy/OpenCV, no I/O.
 """
