@@ -48,6 +48,16 @@ __all__ = ["POSE_IMAGE", "POSE_TELEMETRY", "CameraPose", "DisPreset", "MotionCon
            "parallax_height", "plane_homography"]
 
 
+def _warp_window(src: np.ndarray, hom: np.ndarray, window: tuple[slice, slice]) -> np.ndarray:
+    """``src`` (a keyframe, grey) resampled onto the current frame's ``window`` by ``hom`` (current frame pixel ->
+    ``src`` pixel): only the window is warped, its pixel (x, y) being (x + c0, y + r0) of the frame."""
+    rs, cs = window
+    shift = np.array([[1.0, 0.0, cs.start], [0.0, 1.0, rs.start], [0.0, 0.0, 1.0]])
+    out: np.ndarray = cv2.warpPerspective(src, hom @ shift, (cs.stop - cs.start, rs.stop - rs.start),
+                                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    return out
+
+
 @dataclass(frozen=True)
 class _Stored:
     time_s: float
@@ -195,11 +205,7 @@ class MotionStage:
         newest = self._history[-1]
         rs, cs = window
         hom = plane_homography(self.k_cv, pose, newest.pose)[0]
-        shift = np.array([[1.0, 0.0, cs.start], [0.0, 1.0, rs.start], [0.0, 0.0, 1.0]])
-        size = (cs.stop - cs.start, rs.stop - rs.start)
-        wrp = cv2.warpPerspective(newest.grey, hom @ shift, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                  borderMode=cv2.BORDER_REPLICATE)
-        return moved_as_posed(np.ascontiguousarray(grey[rs, cs]), newest.grey[rs, cs], wrp,
+        return moved_as_posed(np.ascontiguousarray(grey[rs, cs]), newest.grey[rs, cs], _warp_window(newest.grey, hom, window),
                               predicted_motion_px(hom, rs, cs), self.config.checks)
 
     def _chain(self, grey: np.ndarray, pose: CameraPose, time_s: float) -> CameraPose:
@@ -338,11 +344,7 @@ class MotionStage:
         if sweep.raised:
             pose = replace(pose, agl_m=sweep.level_m)
         hom, rot, t, n, d = plane_homography(self.k_cv, pose, ref.pose)
-        # Warp only the window: current pixel (x, y) of the window = (x + c0, y + r0) of the frame.
-        shift = np.array([[1.0, 0.0, cs.start], [0.0, 1.0, rs.start], [0.0, 0.0, 1.0]])
-        wh, ww = rs.stop - rs.start, cs.stop - cs.start
-        wrp = cv2.warpPerspective(ref.grey, hom @ shift, (ww, wh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                  borderMode=cv2.BORDER_REPLICATE)
+        wrp = _warp_window(ref.grey, hom, window)
         cur = np.ascontiguousarray(grey[rs, cs])
         # No texture, or images that did not move as the poses did, would read as level ground (image_checks).
         tex = textured(cur, cfg.checks)
@@ -375,8 +377,9 @@ class MotionStage:
         # Textureless pixels are left out: their flow is filled in from around them, with no residual of its own.
         matched_ok = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error)
         noise_px = cfg.flow_noise_px
-        if int((matched_ok & tex).sum()) >= 100:
-            noise_px = max(noise_px, 1.4826 * float(np.median(cross[matched_ok & tex])) * f)
+        spread = cross[matched_ok & tex]
+        if spread.size >= 100:
+            noise_px = max(noise_px, 1.4826 * float(np.median(spread)) * f)
         explained = matched_ok & (cross * f <= max(cfg.max_cross_parallax_px, 3 * noise_px))
         # NED point of each pixel at its measured height (the plane point where the flow is not trusted). The
         # height may be negative (ground below the plane: the point is farther along its ray than the plane's).
