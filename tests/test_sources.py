@@ -97,6 +97,31 @@ def test_image_folder_and_glob_skip_corrupt_images(tmp_path, caplog):
         Grabber(SourceConfig.from_string(str(tmp_path / "*.jpg"))).start()
 
 
+def test_an_image_repeated_bit_for_bit_by_a_camera_device_is_invalid(tmp_path, caplog):
+    """A frozen capture card repeats its last buffer; a sensor's noise makes real exposures differ."""
+    rng = np.random.default_rng(2)
+    a, b, c = (rng.integers(0, 255, (48, 64, 3), dtype=np.uint8) for _ in range(3))
+    path = tmp_path / "frozen.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    for img in (a, a, b, b, b, b, c):
+        writer.write(img)
+    writer.release()
+    assert SourceConfig.from_string("/dev/video0").checks_repeats
+    assert not SourceConfig.from_string(str(path)).checks_repeats   # a recorded hover may repeat an image
+    with caplog.at_level(logging.WARNING):
+        grabber = Grabber(SourceConfig.from_string(str(path), repeats_invalid=True)).start()
+        frames = drain(grabber)
+        grabber.stop()
+    assert [f.valid for f in frames] == [True, False, True, False, False, False, True]
+    assert all("stale buffer" in f.reason for f in frames if not f.valid)
+    said = [r.message for r in caplog.records if "invalid" in r.message]
+    assert len(said) == 4, said   # each run of invalid frames once at its start and once at its end
+    assert said[3].startswith("3 frame(s)")
+    grabber = Grabber(SourceConfig.from_string(str(path))).start()
+    assert all(f.valid for f in drain(grabber))
+    grabber.stop()
+
+
 class FastCamera(Reader):
     """A live source producing frames as fast as it can; fails once after ``fail_after`` frames."""
 

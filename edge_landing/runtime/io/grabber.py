@@ -51,6 +51,8 @@ class Grabber:
         self._front: Optional[Frame] = None
         self._sim_base_s: Optional[float] = None   # monotonic time of a simulated flight's t = 0
         self._last_stamp_s = -float("inf")
+        self._problem = ""            # the reason of the current run of invalid frames ('' while frames are fine)
+        self._problem_frames = 0
 
     def put_back(self, frame: Frame) -> None:
         """Hand ``frame`` out again at the next ``next`` (the caller looked at the first frame before the loop)."""
@@ -124,8 +126,7 @@ class Grabber:
                 # model does not make every played-back frame "stale".
                 self._wait_for_free_slot()
             problem = reader.problem
-            if problem:
-                log.warning("frame %d of %s is invalid: %s", self._next_id, self.config.camera, problem)
+            self._say_problem(problem)
             stamp_s, lag_s = self._stamp(reader)
             frame = Frame(self._next_id, stamp_s, rgb, self.config.camera, valid=not problem, reason=problem,
                           clock_lag_s=lag_s)
@@ -138,6 +139,18 @@ class Grabber:
         with self._cond:
             self.ended = True
             self._cond.notify_all()
+
+    def _say_problem(self, problem: str) -> None:
+        """Log the first frame of a run of invalid frames with one reason, and the run's length when it ends
+        (a frozen camera at 30 frames/s would otherwise write 30 lines a second)."""
+        if problem == self._problem:
+            self._problem_frames += bool(problem)
+            return
+        if self._problem:
+            log.warning("%d frame(s) of %s were invalid: %s", self._problem_frames, self.config.camera, self._problem)
+        if problem:
+            log.warning("frame %d of %s is invalid: %s", self._next_id, self.config.camera, problem)
+        self._problem, self._problem_frames = problem, int(bool(problem))
 
     def _stamp(self, reader: Reader) -> tuple[float, float]:
         """(capture time, clock lag) of the image just read (see Frame.clock_lag_s).

@@ -71,6 +71,12 @@ class SourceConfig:
     poses_csv: str = ""  # replay a recorded flight's poses.csv as telemetry, one row per frame
     reopen_min_s: float = 0.5
     reopen_max_s: float = 5.0
+    # An image identical to the one before is invalid (None: only for a camera device, see RepeatedImage).
+    repeats_invalid: Optional[bool] = None
+
+    @property
+    def checks_repeats(self) -> bool:
+        return self.kind is SourceKind.DEVICE if self.repeats_invalid is None else self.repeats_invalid
 
     @staticmethod
     def from_string(camera: str, **kwargs: Any) -> SourceConfig:
@@ -93,6 +99,27 @@ def grey_fill(rgb: np.ndarray) -> str:
     if last.size and bool(np.all(last == 128)):
         return "bottom row is uniform grey 128 (an incompletely decoded JPEG frame)"
     return ""
+
+
+class RepeatedImage:
+    """An image identical, bit for bit, to the previous one from a live sensor is a stale buffer handed over
+    again (a capture card or driver that repeats its last frame when the camera stalls): a sensor's noise
+    alone makes two real exposures differ. Geometry would pair it with the vehicle's new pose and read the
+    wrong motion, and the network's view of it is already old, so the frame is invalid. Only for camera
+    devices: a compressed stream or a recorded flight may legitimately repeat an image (a hover over a
+    static scene). Keeps a reference to the last image only."""
+
+    def __init__(self) -> None:
+        self._last: Optional[np.ndarray] = None
+
+    def check(self, image: np.ndarray) -> str:
+        last, self._last = self._last, image
+        if last is None or last.shape != image.shape:
+            return ""
+        # a sparse sample rejects almost every real pair at once; the whole image only when that matched
+        if not np.array_equal(last[::8, ::8], image[::8, ::8]) or not np.array_equal(last, image):
+            return ""
+        return "identical to the previous image (the camera handed over a stale buffer again: frozen feed)"
 
 
 class Reader:
@@ -129,6 +156,7 @@ class VideoReader(Reader):
         self.name = config.camera
         self._expected_frames = 0
         self._read = 0
+        self._repeats = RepeatedImage() if config.checks_repeats else None
         target: int | str = config.camera
         if config.kind is SourceKind.DEVICE:
             target = int(config.camera) if config.camera.isdigit() else config.camera
@@ -170,7 +198,8 @@ class VideoReader(Reader):
                 return None
             raise OSError(f"{self.name}: no frame from the camera")
         self._read += 1
-        self.problem = grey_fill(bgr)
+        repeated = self._repeats.check(bgr) if self._repeats is not None else ""
+        self.problem = grey_fill(bgr) or repeated
         if bgr.ndim == 2:
             return cv2.cvtColor(bgr, cv2.COLOR_GRAY2RGB)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
