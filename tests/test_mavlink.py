@@ -1,6 +1,7 @@
 """The MAVLink link with real pymavlink peers on loopback UDP/TCP, and the telemetry buffer."""
 from __future__ import annotations
 
+import logging
 import math
 import socket
 import threading
@@ -170,7 +171,7 @@ def test_signed_messages_with_a_key_file(assets, tmp_path):
     assert load_signing_key(str(tmp_path / "hex.key")) == key
 
 
-def test_bad_key_and_bad_url_are_one_line_errors(assets, tmp_path, capsys):
+def test_bad_key_and_bad_url_are_one_line_errors(assets, tmp_path, capsys, caplog):
     (tmp_path / "short.key").write_bytes(b"12345")
     assert edge_run(assets, "--mav", "udpout:127.0.0.1:14550", "--mav-key", str(tmp_path / "short.key")) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -178,8 +179,17 @@ def test_bad_key_and_bad_url_are_one_line_errors(assets, tmp_path, capsys):
     for url in ("udpout:nohost", "bluetooth:xx", "/dev/ttyUSB0,fast"):
         with pytest.raises(InputError):
             check_url(url)
+    with pytest.raises(InputError, match="port 99999 is not in 1-65535"):
+        check_url("udpout:127.0.0.1:99999")
     with pytest.raises(InputError, match="ardupilot, px4"):
         Autopilot.from_string("inav")
+    # a bad --mav with the sim camera: the error is the only line (nothing said about telemetry before it)
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        assert edge_run(assets, "--camera", "sim", "--mav", "udpout:127.0.0.1:0") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "port 0 is not in 1-65535" in err[0], err
+    assert not [r.message for r in caplog.records if "telemetry" in r.message]
 
 
 def test_telemetry_interpolation_yaw_wrap_window_and_clock_offset():

@@ -305,14 +305,13 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
         if cfg.mav:
             # The simulator's (or a replayed flight's) telemetry matches its frames; an autopilot's would
             # describe another flight.
-            link_telemetry = telemetry
-            if own_telemetry:
-                log.info("%s: using its own telemetry; the autopilot's is not used",
-                         "sim camera" if src.kind is SourceKind.SIM else "--poses replay")
-                link_telemetry = TelemetryBuffer()
+            link_telemetry = TelemetryBuffer() if own_telemetry else telemetry
             link = MavlinkLink(LinkConfig(cfg.mav, cfg.autopilot, cfg.mav_sysid, cfg.mav_compid, cfg.mav_key,
                                           target_system=cfg.mav_target_system), link_telemetry).start()
             stack.callback(link.stop)
+            if own_telemetry:  # said once the link is up, not before a bad --mav is refused
+                log.info("%s: using its own telemetry; the autopilot's is not used",
+                         "sim camera" if src.kind is SourceKind.SIM else "--poses replay")
             if not own_telemetry and cfg.telemetry_wait_s > 0:
                 wait_for_telemetry(telemetry, cfg.telemetry_wait_s, out)
         grabber = Grabber(src, telemetry=telemetry if own_telemetry else None).start()

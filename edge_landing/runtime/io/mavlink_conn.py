@@ -35,8 +35,10 @@ def check_url(url: str) -> None:
     if url.startswith(NET_PREFIXES):
         host_port = url.split(":", 1)[1]
         host, _, port = host_port.rpartition(":")
-        if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        if not host or not port.isdigit():
             raise InputError(f"MAVLink connection '{url}' needs host:port after the scheme, e.g. udpout:127.0.0.1:14550")
+        if not 0 < int(port) < 65536:
+            raise InputError(f"MAVLink connection '{url}': port {port} is not in 1-65535")
         return
     device = url.split(",", 1)[0]
     if device.startswith("/dev/") or device.upper().startswith("COM"):
