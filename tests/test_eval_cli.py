@@ -168,6 +168,9 @@ def test_bad_input_is_one_line_and_nonzero(tmp_path, model_path, capsys):
     np.save(scene / "depth" / "000000.npy", np.ones((3, 3), np.float32))
     assert eval_main([str(model_path), str(scene)]) == 2
     assert "frame 000000" in capsys.readouterr().err
+    (scene / "depth" / "000000.npy").write_text("not an array\n")   # numpy's own message speaks of pickles
+    assert eval_main([str(model_path), str(scene)]) == 2
+    assert "000000.npy is not a .npy file (no NumPy header)" in capsys.readouterr().err
 
 
 def test_subprocess_exit_codes(tmp_path, model_path):

@@ -213,10 +213,16 @@ class SceneWriter:
                                 f"{p.roll_rad:.8f}", f"{p.pitch_rad:.8f}", f"{p.yaw_rad:.8f}", f"{p.agl_m:.6f}"])
 
 
+NPY_MAGIC = b"\x93NUMPY"
+
+
 def _load_npy(path: Path, frame_id: str, expected: str) -> np.ndarray:
     if not path.exists():
         raise SceneError(f"frame {frame_id}: missing {path} (expected {expected})")
     try:
+        with open(path, "rb") as f:
+            if f.read(6) != NPY_MAGIC:  # numpy's own message for this talks about pickles
+                raise SceneError(f"frame {frame_id}: {path} is not a .npy file (no NumPy header); expected {expected}")
         return np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise SceneError(f"frame {frame_id}: {path} is not a readable .npy file ({exc}); expected {expected}") from None
