@@ -1,4 +1,5 @@
 import json
+import logging
 import math
 import subprocess
 import sys
@@ -55,6 +56,18 @@ def test_calibration_recovers_a_known_scale(tmp_path, model_path):
     assert cal.frames_used == cal.frames_total == 6 and cal.reliable
     assert cal.min_ratio <= cal.scale <= cal.max_ratio and cal.mad < 0.02
     assert cal.model_sha256 == model.sha256
+
+
+def test_frames_without_ground_truth_are_counted_not_said_one_by_one(tmp_path, model_path, caplog):
+    path = write_scaled_scene(tmp_path / "scene", scale=2.5, frames=10)
+    for i in range(1, 9):   # eight frames whose depth is all sky
+        np.save(path / "depth" / f"{i:06d}.npy", np.full((H, W), np.nan, np.float32))
+    with caplog.at_level(logging.WARNING):
+        cal = calibrate_scene(Scene(path), OnnxModel.load(model_path, threads=1), show_progress=False)
+    assert cal.frames_used == 2 and cal.scale == pytest.approx(2.5, rel=0.02)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 4, said          # the first three, then one count
+    assert said[-1].startswith("8 frame(s) skipped: no valid ground-truth pixel") and "last 000008" in said[-1]
 
 
 def test_cli_writes_scene_calibration_json_and_it_loads_back(tmp_path, model_path, capsys):

@@ -37,6 +37,29 @@ class CalibrationConfig:
     max_frames: Optional[int] = None
 
 
+class SkippedFrames:
+    """Frames left out, said one by one for the first few and then counted, so a scene where most frames
+    lack ground truth gives a summary instead of a line per frame."""
+
+    said_each = 3
+
+    def __init__(self) -> None:
+        self.by_reason: dict[str, list[str]] = {}
+        self.count = 0
+
+    def add(self, frame_id: str, reason: str) -> None:
+        self.count += 1
+        self.by_reason.setdefault(reason, []).append(frame_id)
+        if self.count <= self.said_each:
+            log.warning("frame %s: %s; frame skipped", frame_id, reason)
+
+    def summarise(self) -> None:
+        if self.count <= self.said_each:
+            return
+        for reason, ids in self.by_reason.items():
+            log.warning("%d frame(s) skipped: %s (first %s, last %s)", len(ids), reason, ids[0], ids[-1])
+
+
 def calibrate_scene(scene: Scene, model: OnnxModel, config: CalibrationConfig = CalibrationConfig(),
                     show_progress: bool = True) -> SceneCalibration:
     """Run ``model`` over every frame and return the scene's median scale (raises SceneError when no frame
@@ -52,6 +75,7 @@ def calibrate_scene(scene: Scene, model: OnnxModel, config: CalibrationConfig = 
         raise InputError(f"need 0 <= min depth < max depth, got {lo} and {hi}")
     frame_ids = scene.frame_ids[: config.max_frames] if config.max_frames else scene.frame_ids
     ratios: dict[str, float] = {}
+    skipped = SkippedFrames()
     iterator = progress(frame_ids, total=len(frame_ids), desc="edge-calibrate") if show_progress else frame_ids
     for index, fid in enumerate(iterator):
         rgb = scene.read_rgb(fid)
@@ -61,14 +85,15 @@ def calibrate_scene(scene: Scene, model: OnnxModel, config: CalibrationConfig = 
                              f"{rgb.shape[0]}x{rgb.shape[1]}; expected the same size (ARCHITECTURE.md §4)")
         pred = model.predict(rgb, frame_id=index, out_hw=gt.shape)
         if not pred.valid:
-            log.warning("frame %s: model output invalid (%s); frame skipped", fid, pred.reason)
+            skipped.add(fid, f"model output invalid ({pred.reason})")
             continue
         assert pred.depth_m is not None     # the contract has a depth head (checked above)
         r = median_scale(gt, pred.depth_m, lo, hi)
         if math.isfinite(r) and r > 0:
             ratios[fid] = r
         else:
-            log.warning("frame %s: no valid ground-truth pixel in (%g, %g) m; frame skipped", fid, lo, hi)
+            skipped.add(fid, f"no valid ground-truth pixel in ({lo:g}, {hi:g}) m")
+    skipped.summarise()
     if not ratios:
         raise SceneError(f"scene {scene.path}: none of its {len(frame_ids)} frames has valid depth ground truth "
                          f"(finite values in ({lo:g}, {hi:g}) m) and a valid prediction; nothing to calibrate")
