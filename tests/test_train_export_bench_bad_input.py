@@ -40,6 +40,18 @@ def test_train_refuses_bad_numbers_before_training(tmp_path, capsys, extra, expe
     assert not (out / "last.pth").exists()
 
 
+def test_train_refused_for_a_missing_scene_leaves_no_empty_out_folder(tmp_path, capsys):
+    write_tiny_scene(tmp_path / "scene")
+    for out in (tmp_path / "new" / "run", tmp_path / "kept"):
+        if out.name == "kept":
+            out.mkdir()   # a folder the user made stays
+        one_line_error(capsys, train_main, ["--arch", "edgenet", "--train", str(tmp_path / "scene"), "--val",
+                                            str(tmp_path / "nowhere"), "--out", str(out), "--height", "32",
+                                            "--width", "32", "--no-progress"], "does not exist or is not a folder")
+        assert out.exists() == (out.name == "kept")
+    assert not (tmp_path / "new").exists()
+
+
 def test_train_checkpoint_folder_says_it_is_a_folder(tmp_path, capsys):
     one_line_error(capsys, train_main, ["--arch", "edgenet", "--train", str(tmp_path), "--out", str(tmp_path / "o"),
                                         "--init", str(tmp_path)], "is a folder")

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Sequence
 
 from edge_landing.cli.common import CliParser, check_number, check_threads, output_folder, run_cli
-from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.core.errors import EdgeError, InputError
 
 from .zoo import arch_names
 
@@ -116,15 +116,38 @@ def config_from_args(args: argparse.Namespace):
 def _main(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)   # without the [export] extra: one line (CliParser checks it)
     config = config_from_args(args)
+    made = _missing_folders(Path(args.out))
     output_folder(args.out, "the --out folder")
     from .train import train
 
-    result = train(config)
+    try:
+        result = train(config)
+    except EdgeError:
+        _remove_if_empty(made)   # refused before anything was written (a scene that does not load)
+        raise
     last = result.history[-1] if result.history else {}
     print(f"trained {args.arch}: {len(result.history)} epochs, final train loss "
           f"{last.get('train', {}).get('total', float('nan')):.4f}; best checkpoint {result.best_checkpoint}"
           + (f"; exported {result.onnx_path}" if result.onnx_path else ""))
     return 0
+
+
+def _missing_folders(path: Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first."""
+    missing = []
+    while not path.exists() and path != path.parent:
+        missing.append(path)
+        path = path.parent
+    return missing
+
+
+def _remove_if_empty(folders: list[Path]) -> None:
+    """Remove the folders this run made, deepest first, as long as they are empty."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return   # something was written after all: keep it
 
 
 def main(argv: Sequence[str] | None = None) -> int:
