@@ -61,6 +61,8 @@ def tiny_scene(path: Path, frames: int = 3) -> Path:
     (["--json", "{t}/regfile/o.json"], "--json"),
     (["--json", "/proc/x/o.json"], "/proc/x"),
     (["--json", "{t}/o.json", "--trace", "{t}/o.json"], "--trace"),
+    (["--pose-errors", "bogus"], "--pose-errors"),
+    (["--error-seed", "-3"], "--error-seed"),
 ])
 def test_lying_model(capsys, files, argv, expected):
     one_line_error(capsys, lying_model.main, [a.format(t=files) for a in argv], expected)

@@ -21,12 +21,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from edge_landing.benchmarks.pose_errors import NoisyTelemetry, PoseErrorConfig, PoseErrors
 from edge_landing.cli.common import (
     CliParser,
     check_choice,
@@ -56,6 +57,7 @@ class ReplayConfig:
     height: int = 240
     trace: str = ""                   # JSON lines, one per frame and model: why a target was (not) sent
     no_position: bool = False         # telemetry without position: geometry from the image-only pose
+    pose_errors: PoseErrorConfig = PoseErrorConfig()   # an autopilot's estimation errors on what fusion sees
 
 
 def lying_prediction(intr: Intrinsics, mount: Mount, state: VehicleState, frame_id: int) -> Prediction:
@@ -146,12 +148,15 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
     geo_ms: list[float] = []
     trace = open(cfg.trace, "w") if cfg.trace else None
     n_app, n_hov = int(round(cfg.frames * 0.4)), int(round(cfg.frames * 0.2))   # sim.flight's phases
+    reported = NoisyTelemetry(cfg.pose_errors)
     for k, s in enumerate(vehicle_samples(scfg, world)):
         r = render_sample(scfg, k, s, renderer)
         state = VehicleState(s.t_s, s.attitude, s.position_ned_m.copy(), s.agl_m, "sim")
-        seen = replace(state, position_ned_m=None) if cfg.no_position else state
+        noisy = reported(state)
+        seen = replace(noisy, position_ned_m=None) if cfg.no_position else noisy
         for name, run in runs.items():
-            pred = lying_prediction(intr, mount, state, k) if run["model"] is None else run["model"](r.rgb, state, k)
+            # the lying network's claim is exact flat ground; the shipped one's metric scale uses telemetry
+            pred = lying_prediction(intr, mount, state, k) if run["model"] is None else run["model"](r.rgb, noisy, k)
             fused = run["geometry"].fuse(pred, seen, s.t_s, r.rgb)
             sent, _ = run["continuity"].step(fused.target, seen, fused.grid, True)
             outcomes = {"geometry": fused.target, "sent": sent,
@@ -160,6 +165,11 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
                 if cfg.no_position and target.valid and target.position_body_frd_m is not None:
                     body = np.asarray(target.position_body_frd_m, np.float64)   # judged where it points
                     target = replace(target, position_ned_m=s.position_ned_m + s.attitude.ned_from_body() @ body)
+                elif target.valid and target.position_ned_m is not None and noisy.position_ned_m is not None \
+                        and noisy is not state:
+                    # the autopilot flies to the target relative to where it believes it is
+                    offset = np.asarray(target.position_ned_m, np.float64) - noisy.position_ned_m
+                    target = replace(target, position_ned_m=s.position_ned_m + offset)
                 fuser = run["geometry" if kind == "sent" else kind]
                 if kind == "geometry" and "geometry" in target.timings_s:
                     geo_ms.append(1e3 * target.timings_s["geometry"])
@@ -183,7 +193,7 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
             print(f"  frame {k}/{cfg.frames}", flush=True)
     if trace is not None:
         trace.close()
-    return {"config": cfg.__dict__, "frames": cfg.frames, "stats": stats, "recall": recall,
+    return {"config": asdict(cfg), "frames": cfg.frames, "stats": stats, "recall": recall,
             "geometry_ms_p50": float(np.median(geo_ms)) if geo_ms else math.nan}
 
 
@@ -235,6 +245,8 @@ def _check_args(a: argparse.Namespace) -> None:
     if not all(16 <= v <= 4096 for v in a.size):
         raise InputError(f"--size must be two sizes between 16 and 4096 pixels (W H), got {a.size[0]} {a.size[1]}")
     check_number("--obstacle-height", a.obstacle_height, 0.0, 10.0, lo_open=True, unit="metres")
+    check_choice("--pose-errors", PoseErrors.from_string, a.pose_errors)
+    check_seed("--error-seed", a.error_seed)
     check_outputs_spare_inputs({"--json": a.json, "--trace": a.trace}, {})
     if a.trace:
         output_file(a.trace, "the --trace file")
@@ -253,16 +265,21 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"), help="camera size")
     p.add_argument("--no-hazards", action="store_true", help="the plain towns (no sim.hazards)")
     p.add_argument("--no-position", action="store_true", help="telemetry without position (image-only pose)")
+    p.add_argument("--pose-errors", default="none", help="an autopilot's estimation errors added to the telemetry "
+                   "fusion sees: none (the simulator's exact pose), typical or harsh (benchmarks.pose_errors)")
+    p.add_argument("--error-seed", type=int, default=0, help="seed of the pose errors")
     p.add_argument("--json", help="write the result here")
     p.add_argument("--trace", default="", help="write one JSON line per frame and model (reasons, motion figures)")
     a = p.parse_args(argv)
     _check_args(a)
     result = replay(ReplayConfig(a.style, a.seed, a.frames, models=tuple(a.models),
                                  obstacle_height_m=a.obstacle_height, width=a.size[0], height=a.size[1],
-                                 hazards=not a.no_hazards, trace=a.trace, no_position=a.no_position),
+                                 hazards=not a.no_hazards, trace=a.trace, no_position=a.no_position,
+                                 pose_errors=PoseErrors.from_string(a.pose_errors).config(a.error_seed)),
                     progress=True)
     print(f"{a.style} seed {a.seed}, {a.frames} frames, camera {a.size[0]}x{a.size[1]}"
-          + (", telemetry without position" if a.no_position else ""))
+          + (", telemetry without position" if a.no_position else "")
+          + (f", {a.pose_errors} pose errors (seed {a.error_seed})" if a.pose_errors != "none" else ""))
     print(_summary(result))
     if a.json:
         Path(a.json).write_text(json.dumps(result, indent=1))
