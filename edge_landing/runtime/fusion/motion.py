@@ -42,6 +42,7 @@ from edge_landing.runtime.fusion.parallax import (
     plane_homography,
 )
 from edge_landing.runtime.fusion.plane_sweep import sweep_plane
+from edge_landing.runtime.fusion.rotation_fit import pair_rotation_error, rotation_flow
 from edge_landing.runtime.fusion.streaks import RainFilter
 
 __all__ = ["POSE_IMAGE", "POSE_TELEMETRY", "CameraPose", "DisPreset", "MotionConfig", "MotionStage", "ParallaxResult",
@@ -369,6 +370,12 @@ class MotionStage:
         # Normalised coordinates, H×W per component (2×H×W for the current frame's pixels).
         xr = ((ur - self.k_cv[0, 2]) * k_inv[0, 0], (vr - self.k_cv[1, 2]) * k_inv[1, 1])
         xc = self._norm[:, rs, cs]
+        # The telemetry's rotation drift between the pair, measured across the epipolar lines (rotation_fit).
+        omega = pair_rotation_error(xc, xr, rot, t, n, d, in_ref & tex & (photo <= cfg.max_photometric_error),
+                                    cfg.rotation_fit)
+        if np.any(omega != 0.0):
+            dx, dy = rotation_flow(xr[0], xr[1], omega)
+            xr = (xr[0] - dx, xr[1] - dy)
         hgt, gnorm, cross = parallax_height(xc, xr, rot, t, n, d)
         f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
         shape = cur.shape

@@ -15,6 +15,7 @@ from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.fusion.image_checks import ImageCheckConfig
 from edge_landing.runtime.fusion.image_motion import ImagePoseConfig
 from edge_landing.runtime.fusion.plane_sweep import SweepConfig
+from edge_landing.runtime.fusion.rotation_fit import RotationFitConfig
 from edge_landing.runtime.fusion.streaks import StreakConfig
 
 POSE_TELEMETRY, POSE_IMAGE = "telemetry", "image"
@@ -76,6 +77,7 @@ class MotionConfig:
     streaks: StreakConfig = StreakConfig()            # rain streaks filled in before the flow (fusion.streaks)
     sweep: SweepConfig = SweepConfig()                # the plane a window is measured against (fusion.plane_sweep)
     checks: ImageCheckConfig = ImageCheckConfig()     # texture and moving-as-posed (fusion.image_checks)
+    rotation_fit: RotationFitConfig = RotationFitConfig()   # the telemetry's rotation drift (fusion.rotation_fit)
 
     def __post_init__(self) -> None:
         h, w = self.window_hw

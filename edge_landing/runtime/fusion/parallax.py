@@ -66,16 +66,9 @@ def parallax_height(x_c: Coords, x_r: Coords, rot: np.ndarray, t: np.ndarray, n:
     float32 inputs are computed in float64. Written per component: a 3×3 product over tens of thousands of
     points costs several times more as matrix products with stacked homogeneous coordinates.
     """
-    x, y = np.asarray(x_c[0], np.float64), np.asarray(x_c[1], np.float64)
-    xr, yr = np.asarray(x_r[0], np.float64), np.asarray(x_r[1], np.float64)
-    he = rot + np.outer(t, n) / d
-    nx = n[0] * x + n[1] * y + n[2]                           # > 0: the ray meets the plane ahead
-    q = [he[i, 0] * x + he[i, 1] * y + he[i, 2] for i in range(3)]   # H_e x_c (homogeneous, reference frame)
+    nx, z0, gx, gy, rx, ry = plane_residuals(x_c, x_r, rot, t, n, d)
     with np.errstate(invalid="ignore", divide="ignore"):
-        z0 = d / nx * q[2]                                    # reference depth of the plane point on this ray
-        gx, gy = (t[0] - xr * t[2]) / z0, (t[1] - yr * t[2]) / z0
         g2 = gx * gx + gy * gy
-        rx, ry = xr - q[0] / q[2], yr - q[1] / q[2]
         s = (rx * gx + ry * gy) / g2
         gnorm = np.sqrt(g2)
         cross = np.abs(rx * gy - ry * gx) / gnorm
@@ -84,6 +77,22 @@ def parallax_height(x_c: Coords, x_r: Coords, rot: np.ndarray, t: np.ndarray, n:
     h[bad] = np.nan
     gnorm[bad] = 0.0
     return h, gnorm, cross
+
+
+def plane_residuals(x_c: Coords, x_r: Coords, rot: np.ndarray, t: np.ndarray, n: np.ndarray, d: float
+                    ) -> tuple[np.ndarray, ...]:
+    """(n^T x_c, Z0, g_x, g_y, r_x, r_y) per point: the plane terms of :func:`parallax_height` (its docstring:
+    r = x_r - π(H_e x_c) is the residual, g the parallax direction per unit of h/(d-h))."""
+    x, y = np.asarray(x_c[0], np.float64), np.asarray(x_c[1], np.float64)
+    xr, yr = np.asarray(x_r[0], np.float64), np.asarray(x_r[1], np.float64)
+    he = rot + np.outer(t, n) / d
+    nx = n[0] * x + n[1] * y + n[2]                           # > 0: the ray meets the plane ahead
+    q = [he[i, 0] * x + he[i, 1] * y + he[i, 2] for i in range(3)]   # H_e x_c (homogeneous, reference frame)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z0 = d / nx * q[2]                                    # reference depth of the plane point on this ray
+        gx, gy = (t[0] - xr * t[2]) / z0, (t[1] - yr * t[2]) / z0
+        rx, ry = xr - q[0] / q[2], yr - q[1] / q[2]
+    return nx, z0, gx, gy, rx, ry
 
 
 def ned_points(pose: CameraPose, xc: np.ndarray, lam_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

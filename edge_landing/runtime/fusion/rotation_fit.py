@@ -1,0 +1,80 @@
+"""The telemetry's relative-rotation error between a frame pair, measured from the flow (ARCHITECTURE.md §11).
+
+An autopilot's attitude drifts against the truth by a few hundredths of a degree per second (a residual gyro
+bias), so between frames seconds apart the relative rotation is off by about 0.1°: about a pixel at 640 px
+across, several times the flow's own noise. Read as parallax, that pixel inflates the pair's noise estimate
+(measured across the epipolar lines) until nothing can be confirmed, and tilts the heights.
+
+A rotation error moves every image point by the same small-rotation field, whatever its depth, while
+parallax moves points only *along* their epipolar lines. So the residual *across* the epipolar lines is
+flow error plus rotation error, never parallax: fitting the rotation to it cannot absorb an obstacle. A ridge
+keeps the directions the window cannot observe (usually the rotation whose flow runs along the epipolar
+lines) at zero; their along-line residual is a smooth height offset that the terrain fit removes. Frames:
+normalised image coordinates of the reference camera (OpenCV, x right, y down). Pure numpy.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from edge_landing.runtime.fusion.parallax import plane_residuals
+
+
+@dataclass(frozen=True)
+class RotationFitConfig:
+    enabled: bool = True
+    max_rad: float = 0.02          # larger fitted corrections (1.1°) are not a drift: the pair is left as it is
+    stride_px: int = 3             # every this many pixels each way are used for the fit
+    min_points: int = 200
+    ridge: float = 0.01            # × the number of points: keeps unobservable rotations at zero
+
+
+def rotation_flow(x: np.ndarray, y: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Displacement of normalised points (x, y) under a small camera rotation ``omega`` (radians, 3)."""
+    wx, wy, wz = (float(v) for v in omega)
+    return x * y * wx - (1.0 + x * x) * wy + y * wz, (1.0 + y * y) * wx - x * y * wy - x * wz
+
+
+def pair_rotation_error(xc: np.ndarray, xr: tuple[np.ndarray, np.ndarray], rot: np.ndarray, t: np.ndarray,
+                        n: np.ndarray, d: float, use: np.ndarray,
+                        config: RotationFitConfig = RotationFitConfig()) -> np.ndarray:
+    """The relative-rotation error (radians, 3) of a pair measured against the plane's homography (the
+    arguments of parallax.parallax_height: ``xc`` 2×H×W, ``xr`` two H×W arrays), from every ``stride_px``-th
+    pixel where ``use`` (H×W) holds; zeros when disabled, too few points, or a fit larger than ``max_rad``."""
+    if not config.enabled:
+        return np.zeros(3)
+    sel = (slice(None, None, config.stride_px), slice(None, None, config.stride_px))
+    x_r = (xr[0][sel], xr[1][sel])
+    _, z0, gx, gy, rx, ry = plane_residuals((xc[0][sel], xc[1][sel]), x_r, rot, t, n, d)
+    return fit_rotation(x_r, rx, ry, gx, gy, use[sel] & (z0 > 0), config)
+
+
+def fit_rotation(xr: tuple[np.ndarray, np.ndarray], rx: np.ndarray, ry: np.ndarray, gx: np.ndarray,
+                 gy: np.ndarray, use: np.ndarray, config: RotationFitConfig = RotationFitConfig()) -> np.ndarray:
+    """The small rotation (radians, 3) whose flow best explains the residuals (rx, ry) across the epipolar
+    directions (gx, gy) at the points ``xr`` where ``use`` holds; zeros when there are too few points or the
+    fit is larger than ``max_rad``. Inputs of one shape (normalised units)."""
+    zero = np.zeros(3)
+    with np.errstate(invalid="ignore"):
+        ok = use & np.isfinite(rx) & np.isfinite(ry) & (gx * gx + gy * gy > 0)
+    if int(ok.sum()) < config.min_points:
+        return zero
+    x, y = xr[0][ok], xr[1][ok]
+    g = np.hypot(gx[ok], gy[ok])
+    ex, ey = gy[ok] / g, -gx[ok] / g                            # unit vector across the epipolar line
+    c = rx[ok] * ex + ry[ok] * ey                               # the residual across it
+    cols = [rotation_flow(x, y, unit) for unit in np.eye(3)]
+    a = np.stack([fx * ex + fy * ey for fx, fy in cols], axis=1)
+    keep = np.ones(c.size, bool)
+    omega = zero
+    for _ in range(2):   # a least-squares fit, then again without the points it leaves far out (occlusions)
+        ak, ck = a[keep], c[keep]
+        if ck.size < config.min_points:
+            return zero
+        omega = np.linalg.solve(ak.T @ ak + config.ridge * ck.size * np.eye(3), ak.T @ ck)
+        res = c - a @ omega
+        keep = np.abs(res) <= 3.0 * 1.4826 * float(np.median(np.abs(res))) + 1e-12
+    if not np.all(np.isfinite(omega)) or float(np.max(np.abs(omega))) > config.max_rad:
+        return zero
+    return omega
