@@ -106,10 +106,63 @@ def test_a_reboot_drops_every_earlier_sample():
     buf, t0 = TelemetryBuffer(), 1000.0
     for i in range(40):
         feed(buf, 600.0 + i / RATE_HZ, t0 + i / RATE_HZ, yaw=0.0)
-    buf.add_attitude(0.0, 0.0, 1.0, 3000.0, t0 + 2.3)     # rebooted 3 s ago, turned to 1 rad
+    for i in range(45):                                    # rebooted 3 s ago, turned to 1 rad; confirmed after 2 s
+        buf.add_attitude(0.0, 0.0, 1.0, 3000.0 + 50 * i, t0 + 2.3 + i / RATE_HZ)
     state = buf.state_at(t0 + 2.1)                         # between the last old and the first new sample
-    assert state is not None and state.attitude.yaw_rad == 1.0          # was 0.67: interpolated across the reboot
-    assert state.agl_m is None and state.position_ned_m is None
+    assert state is None or state.attitude.yaw_rad == 1.0          # was 0.67: interpolated across the reboot
+    assert buf.newest_state().position_epoch == 1 and buf.newest_state().agl_m is None
+
+
+def test_one_replayed_old_sample_is_dropped_not_taken_for_a_reboot():
+    """Three samples measured 3 s ago arrive again (a router's buffer, a replayed log) between healthy ones: they
+    are dropped and counted. Taking them for a reboot mapped them onto their arrival, as fresh, dropped the next
+    2 s of healthy telemetry as 'from the future' and dropped the committed spot."""
+    buf, t0 = TelemetryBuffer(), 1000.0
+    for i in range(int(6 * RATE_HZ)):
+        now = t0 + i / RATE_HZ
+        if i == int(3 * RATE_HZ):
+            for k in range(3):                             # tilted and 20 m higher, 3 s ago
+                ms = (5.0 + i / RATE_HZ - 3.0) * 1000.0 + 50 * k
+                buf.add_attitude(0.4, 0.0, 0.0, ms, now)
+                buf.add_relative_alt(30.0, ms, now)
+        feed(buf, 5.0 + i / RATE_HZ, now)
+        match = buf.lookup(now, now)
+        assert match.fresh and match.state.agl_m == 10.0 and match.state.attitude.roll_rad == 0.0, now - t0
+    assert match.state.position_epoch == 0
+    assert buf.rejected() == {"sample stamped seconds before the last one (replayed, or a reboot not yet confirmed)": 6}
+
+
+def test_a_reboot_soon_after_boot_is_confirmed_too():
+    """The old clock had run 3.5 s: the restarted one passes its last time stamp within the confirmation window,
+    yet it is still 3.5 s behind the clock followed so far, so the reboot is confirmed and telemetry comes back."""
+    buf, t0 = TelemetryBuffer(), 1000.0
+    for i in range(int(8 * RATE_HZ)):
+        now = t0 + i / RATE_HZ
+        boot = 3.5 + i / RATE_HZ if now - t0 < 3.0 else 0.001 + (now - t0 - 3.0)
+        feed(buf, boot, now)
+        match = buf.lookup(now, now)
+        if 3.5 <= now - t0 < 5.0:
+            assert not match.fresh                          # confirming: the new clock's samples are dropped
+        if now - t0 >= 5.5:
+            assert match.fresh and match.state.position_epoch == 1, now - t0
+
+
+def test_edge_run_keeps_its_spot_through_one_replayed_old_sample(assets, tmp_path):  # noqa: F811
+    """Three samples measured 3 s ago (tilted, 30 m up) arrive once between healthy ones. Before, they were taken
+    for a reboot: mapped onto their arrival as fresh (fusion ran on them), the committed spot dropped, and the
+    next 1.8 s of healthy telemetry dropped as 'from the future'."""
+    def script(fake: FakeAutopilot, t: float) -> None:
+        if t >= SWITCH_S and not fake.__dict__.get("replayed"):
+            fake.__dict__["replayed"] = True
+            for k in range(3):
+                fake.healthy(boot_ms=fake.boot_ms() - 3000 + 50 * k, roll=0.4, ned=(5.0, -3.0, -30.0))
+        fake.healthy()
+
+    fake, decisions, _ = run_against(assets, tmp_path, script, 5.0)
+    assert_healthy_phase_sent(fake)
+    assert len(fake.targets_between(SWITCH_S, 1e9)) >= 5
+    assert not any("spot dropped" in text or "telemetry lost" in text for text in fake.texts()), fake.texts()
+    assert all(d["agl_m"] in (None, 10.0) for d in decisions)
 
 
 def test_edge_run_sends_nothing_from_telemetry_delivered_late_in_bursts(assets, tmp_path):  # noqa: F811

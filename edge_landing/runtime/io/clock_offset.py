@@ -5,7 +5,8 @@ sample at once, and is re-estimated from the fastest sample of every window, so 
 loses telemetry for good; a re-estimate raises it by no more than the clocks can drift apart (``max_drift``).
 Unlike ArduPilot's, a sample more than 500 ms late is not moved forward, nor the offset with it: a late sample
 keeps its own time, so telemetry held back and delivered in a burst is not matched to frames captured after it
-was measured. A sample stamped from the future by more than ``max_future_s`` is dropped.
+was measured. A sample stamped from the future by more than ``max_future_s`` is dropped, and so is one stamped
+``reboot_jump_s`` before the last until the clock has stayed behind for a window (then the autopilot rebooted).
 """
 from __future__ import annotations
 
@@ -26,17 +27,36 @@ class ClockOffset:
         self._window_min_s = math.inf
         self._last_remote_s = -math.inf
         self._future_since_s: Optional[float] = None
+        self._behind_since_s: Optional[float] = None
+        self.dropped_why = ""         # why the last sample mapped to None was dropped
         self.reboots = 0              # times the remote clock restarted (an autopilot reboot)
 
     def reset(self) -> None:
-        self.offset_s, self._future_since_s = None, None
+        self.offset_s, self._future_since_s, self._behind_since_s = None, None, None
+
+    def _restarted(self, remote_s: float, arrival_s: float) -> bool:
+        """Stamped ``reboot_jump_s`` before the last sample (the clock went back) or, once it has, still that far
+        behind the clock followed so far (a restarted clock soon passes the last time stamp of a short-lived one)."""
+        if remote_s < self._last_remote_s - self.config.reboot_jump_s:
+            return True
+        return (self._behind_since_s is not None and self.offset_s is not None
+                and arrival_s - remote_s > self.offset_s + self.config.reboot_jump_s)
 
     def map(self, remote_s: float, arrival_s: float) -> Optional[float]:
         """Local time of a remote timestamp, or None for a sample from the future (dropped)."""
         c = self.config
-        if remote_s < self._last_remote_s - c.reboot_jump_s:
+        if self._restarted(remote_s, arrival_s):
+            # Stamped well before the last sample: a reboot, or old samples replayed (a router's buffer, a log).
+            # Only a clock that stays behind for a whole window has restarted; until then its samples are dropped.
+            # Restarting on the first one let a single replayed sample be mapped onto its arrival, as fresh.
+            if self._behind_since_s is None:
+                self._behind_since_s = arrival_s
+            if arrival_s - self._behind_since_s < c.clock_window_s:
+                self.dropped_why = "sample stamped seconds before the last one (replayed, or a reboot not yet confirmed)"
+                return None
             self.reset()  # the autopilot rebooted: its clock restarted
             self.reboots += 1
+        self._behind_since_s = None
         diff = arrival_s - remote_s
         if self.offset_s is None:
             self.offset_s, self._window_start_s, self._window_min_s = diff, arrival_s, diff
@@ -46,6 +66,7 @@ class ClockOffset:
             if self._future_since_s is None:
                 self._future_since_s = arrival_s
             if arrival_s - self._future_since_s < c.clock_window_s:
+                self.dropped_why = "sample stamped from the future"
                 return None
             self.offset_s, self._window_start_s, self._window_min_s = diff, arrival_s, diff
         self._future_since_s = None

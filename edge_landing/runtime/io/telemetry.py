@@ -55,7 +55,7 @@ class TelemetryConfig:
 
     window_s: float = 0.25      # how far from the capture time a sample may be and still count
     history_s: float = 5.0      # how much history to keep
-    reboot_jump_s: float = 2.0  # a remote clock that goes back this much means the autopilot rebooted
+    reboot_jump_s: float = 2.0  # a remote clock that goes back this much (for clock_window_s) means a reboot
     fresh_s: float = 0.4        # the newest attitude must have arrived at most this long ago
     clock_window_s: float = 2.0  # the clock offset is re-estimated from the fastest sample of each window
     # How fast the autopilot's clock may fall behind this one (seconds per second): a window's fastest sample may
@@ -187,7 +187,7 @@ class TelemetryBuffer:
         with self._lock:
             t = self.local_time(remote_ms, arrival) if sample_s is None else sample_s
             if t is None:
-                self._rejected["sample stamped from the future"] += 1
+                self._rejected[self._clock.dropped_why] += 1
                 return False
             stale, why = self._frame_moved(series, t, value)
             if stale:
