@@ -7,6 +7,7 @@ import math
 import time
 
 import numpy as np
+import pytest
 
 from edge_landing.runtime.io.telemetry import ClockOffset, TelemetryBuffer, TelemetryConfig
 from tests.fake_autopilot import FakeAutopilot
@@ -76,6 +77,22 @@ def test_a_slow_autopilot_clock_is_still_followed():
         arrival = 1000.0 + i / RATE_HZ
         local = clock.map(5.0 + 0.95 * i / RATE_HZ, arrival)
         assert local is not None and arrival - 0.25 <= local <= arrival + 1e-9, (i, arrival - local)
+
+
+@pytest.mark.parametrize("ahead_s", [0.12, 0.3, 0.45])
+def test_one_sample_stamped_a_little_in_the_future_costs_no_telemetry(ahead_s):
+    """One ATTITUDE stamped 0.3-0.45 s ahead was adopted as the new offset: every later sample then lay that far in
+    the past, beyond the matching window, and no frame had telemetry for 2.7 s. Now it is dropped (beyond
+    max_future_s) or only shifts the matching by less than the window."""
+    buf, t0 = TelemetryBuffer(), 1000.0
+    lost = 0
+    for i in range(int(20 * RATE_HZ)):
+        now = t0 + i / RATE_HZ
+        if i == 60:
+            buf.add_attitude(0.0, 0.0, 0.0, (5.0 + i / RATE_HZ + ahead_s) * 1000.0, now)
+        feed(buf, 5.0 + i / RATE_HZ, now)
+        lost += not buf.lookup(now, now).fresh
+    assert lost == 0
 
 
 def test_a_frozen_autopilot_clock_gives_no_match():

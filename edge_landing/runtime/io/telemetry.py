@@ -64,7 +64,10 @@ class TelemetryConfig:
     # late, in bursts, look fresh (99 targets sent from it in 3 s). A crystal drifts 1e-4; 0.1 leaves room for a
     # simulator's clock running at 90 % of real time (and the 5 % slow clock of tests/test_trust.py).
     max_drift: float = 0.1
-    max_future_s: float = 0.5   # a sample stamped further than this in the future is dropped
+    # A sample stamped further than this in the future of the offset is dropped (unless the clock stays ahead for
+    # clock_window_s): adopted, one such glitch put every later sample that far in the past, beyond window_s, and
+    # telemetry was lost for 2.7 s (0.5 s: one sample 0.45 s ahead). Up to this much it only shifts the matching.
+    max_future_s: float = 0.15
     max_tilt_rad: float = math.radians(60.0)  # |roll|, |pitch| beyond this are not a multicopter in flight
     max_agl_m: float = 1000.0   # relative altitude above this is not believed
     max_position_m: float = 1.0e5
