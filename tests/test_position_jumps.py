@@ -58,8 +58,9 @@ def test_a_reboot_starts_a_new_epoch_even_without_a_jump():
         buf.add_attitude(0.0, 0.0, 0.0, 600_000 + 50 * i, arrival_s=50.0 + 0.05 * i)
         buf.add_position(1.0, 2.0, -30.0, 600_000 + 50 * i, arrival_s=50.0 + 0.05 * i)
     assert buf.newest_state().position_epoch == 0
-    buf.add_attitude(0.0, 0.0, 0.0, 2_000, arrival_s=51.05)          # booted 2 s ago
-    buf.add_position(1.5, 2.0, -30.0, 2_000, arrival_s=51.05)
+    for i in range(45):      # booted 2 s ago; a clock that stays behind for a window (2 s) has restarted
+        buf.add_attitude(0.0, 0.0, 0.0, 2_000 + 50 * i, arrival_s=51.05 + 0.05 * i)
+        buf.add_position(1.5, 2.0, -30.0, 2_000 + 50 * i, arrival_s=51.05 + 0.05 * i)
     state = buf.newest_state()
     assert state.position_epoch == 1 and state.position_ned_m[0] == pytest.approx(1.5)
     assert buf.rejected()["autopilot rebooted (its clock restarted): earlier positions dropped"] == 1

@@ -5,8 +5,10 @@ The link thread calls ``add_*`` as messages arrive; the pipeline asks ``lookup(c
 - Clock: autopilot timestamps (``time_boot_ms``) are mapped onto this computer's monotonic clock by
   :class:`ClockOffset`, a windowed jitter correction like ArduPilot's (GCS_Common.cpp, JitterCorrection): the
   offset follows the fastest sample, is re-estimated from the fastest sample of every window (so a drifting
-  autopilot clock never loses telemetry for good), a sample is never mapped more than ``max_lag_s`` behind
-  its arrival, and a sample stamped from the future by more than ``max_future_s`` is dropped.
+  autopilot clock never loses telemetry for good) but rises by no more than the clocks can drift apart
+  (``max_drift``), and a sample stamped from the future by more than ``max_future_s`` is dropped. A late sample
+  keeps its own (old) time, so telemetry held back and delivered in a burst is not matched to frames captured
+  after it was measured (``clock_offset.py``). A sample no newer than the last of its kind is dropped.
 - Plausibility: every field is gated (non-finite, tilt beyond the envelope, yaw out of range, negative or
   too large height above ground, a rangefinder outside its own range); a rejected sample is counted by
   reason and never used. Nothing here raises on a bad number.
@@ -37,7 +39,9 @@ import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude
 from edge_landing.runtime.core.messages import VehicleState
+from edge_landing.runtime.io.clock_offset import ClockOffset
 
+__all__ = ["ClockOffset", "TelemetryBuffer", "TelemetryConfig", "TelemetryMatch", "RANGEFINDER_DOWN"]
 log = logging.getLogger(__name__)
 _STARTS_OVER = "earlier samples, NED evidence and the committed spot are dropped"
 RANGEFINDER_DOWN = 25  # MAV_SENSOR_ROTATION_PITCH_270
@@ -51,14 +55,23 @@ class TelemetryConfig:
 
     window_s: float = 0.25      # how far from the capture time a sample may be and still count
     history_s: float = 5.0      # how much history to keep
-    reboot_jump_s: float = 2.0  # a remote clock that goes back this much means the autopilot rebooted
+    reboot_jump_s: float = 2.0  # a remote clock that goes back this much (for clock_window_s) means a reboot
     fresh_s: float = 0.4        # the newest attitude must have arrived at most this long ago
     clock_window_s: float = 2.0  # the clock offset is re-estimated from the fastest sample of each window
-    max_lag_s: float = 0.5      # a sample is never mapped further than this behind its arrival (ArduPilot: 500 ms)
-    max_future_s: float = 0.5   # a sample stamped further than this in the future is dropped
+    # How fast the autopilot's clock may fall behind this one (seconds per second): a window's fastest sample may
+    # raise the offset by no more than this × the window. ArduPilot's JitterCorrection also moves a sample that is
+    # more than 500 ms late forward to 500 ms, and its offset with it; that made telemetry delivered 0.7-1.7 s
+    # late, in bursts, look fresh (99 targets sent from it in 3 s). A crystal drifts 1e-4; 0.1 leaves room for a
+    # simulator's clock running at 90 % of real time (and the 5 % slow clock of tests/test_trust.py).
+    max_drift: float = 0.1
+    # A sample stamped further than this in the future of the offset is dropped (unless the clock stays ahead for
+    # clock_window_s): adopted, one such glitch put every later sample that far in the past, beyond window_s, and
+    # telemetry was lost for 2.7 s (0.5 s: one sample 0.45 s ahead). Up to this much it only shifts the matching.
+    max_future_s: float = 0.15
     max_tilt_rad: float = math.radians(60.0)  # |roll|, |pitch| beyond this are not a multicopter in flight
     max_agl_m: float = 1000.0   # relative altitude above this is not believed
     max_position_m: float = 1.0e5
+    max_samples: int = 4096     # per quantity, whatever the rate (a flood of messages cannot grow memory)
     # A local position that moves faster than this (and by more than max(min_jump_m, speed × interval)) did not
     # fly there: the autopilot's frame moved (an EKF reset, a GPS glitch). The earlier positions are dropped and
     # a new position epoch starts: NED evidence and a committed spot from before mean nothing in the new frame.
@@ -73,70 +86,28 @@ class TelemetryConfig:
     estimator_status_s: float = 3.0
 
 
-class ClockOffset:
-    """Autopilot-to-companion clock offset, re-estimated over a sliding window (never a minimum kept forever)."""
-
-    def __init__(self, config: TelemetryConfig):
-        self.config = config
-        self.offset_s: Optional[float] = None
-        self._window_start_s = 0.0
-        self._window_min_s = math.inf
-        self._last_remote_s = -math.inf
-        self._future_since_s: Optional[float] = None
-        self.reboots = 0              # times the remote clock restarted (an autopilot reboot)
-
-    def reset(self) -> None:
-        self.offset_s, self._future_since_s = None, None
-
-    def map(self, remote_s: float, arrival_s: float) -> Optional[float]:
-        """Local time of a remote timestamp, or None for a sample from the future (dropped)."""
-        c = self.config
-        if remote_s < self._last_remote_s - c.reboot_jump_s:
-            self.reset()  # the autopilot rebooted: its clock restarted
-            self.reboots += 1
-        diff = arrival_s - remote_s
-        if self.offset_s is None:
-            self.offset_s, self._window_start_s, self._window_min_s = diff, arrival_s, diff
-        elif diff < self.offset_s - c.max_future_s:
-            # Stamped from the future: one glitch is dropped; a clock that stays ahead for a whole window
-            # has jumped, and is re-learnt from there.
-            if self._future_since_s is None:
-                self._future_since_s = arrival_s
-            if arrival_s - self._future_since_s < c.clock_window_s:
-                return None
-            self.offset_s, self._window_start_s, self._window_min_s = diff, arrival_s, diff
-        self._future_since_s = None
-        self._last_remote_s = remote_s
-        self.offset_s = min(self.offset_s, diff)           # a faster sample: adopt at once
-        self._window_min_s = min(self._window_min_s, diff)
-        if arrival_s - self._window_start_s >= c.clock_window_s:
-            self.offset_s = self._window_min_s             # forget older minima: a drifting clock is followed
-            self._window_start_s, self._window_min_s = arrival_s, diff
-        local = remote_s + self.offset_s
-        if local < arrival_s - c.max_lag_s:                # late by more than any transport: the clock drifted
-            self.offset_s = arrival_s - c.max_lag_s - remote_s
-            local = arrival_s - c.max_lag_s
-        return local
-
-
 class _Series:
     """Time-sorted samples of one quantity (times on the local monotonic clock)."""
 
-    def __init__(self, history_s: float):
+    def __init__(self, history_s: float, max_samples: int):
         self.history_s = history_s
-        self.times: Deque[float] = deque()
-        self.values: Deque[np.ndarray] = deque()
+        # Bounded by count as well as by time: a flood of samples within history_s cannot grow memory without end.
+        self.times: Deque[float] = deque(maxlen=max_samples)
+        self.values: Deque[np.ndarray] = deque(maxlen=max_samples)
         self.last_arrival_s = -math.inf
 
-    def add(self, t_s: float, value: np.ndarray, arrival_s: float) -> None:
-        if self.times and t_s < self.times[-1]:
-            return  # out-of-order sample (e.g. duplicated stream): keep the series sorted
+    def add(self, t_s: float, value: np.ndarray, arrival_s: float) -> bool:
+        """False (not kept) for a sample no later than the newest: out of order, duplicated, or a frozen clock
+        (new values under an old time would be matched to frames as if measured then)."""
+        if self.times and t_s <= self.times[-1]:
+            return False
         self.times.append(t_s)
         self.values.append(value)
         self.last_arrival_s = max(self.last_arrival_s, arrival_s)
         while self.times and self.times[0] < t_s - self.history_s:
             self.times.popleft()
             self.values.popleft()
+        return True
 
     def clear(self) -> None:
         self.times.clear()
@@ -184,10 +155,10 @@ class TelemetryBuffer:
     def __init__(self, config: TelemetryConfig = TelemetryConfig()):
         self.config = config
         self._lock = threading.Lock()
-        self._attitude = _Series(config.history_s)
-        self._position = _Series(config.history_s)
-        self._range = _Series(config.history_s)
-        self._rel_alt = _Series(config.history_s)
+        self._attitude = _Series(config.history_s, config.max_samples)
+        self._position = _Series(config.history_s, config.max_samples)
+        self._range = _Series(config.history_s, config.max_samples)
+        self._rel_alt = _Series(config.history_s, config.max_samples)
         self._clock = ClockOffset(config)
         self._rejected: Counter[str] = Counter()
         self.samples = 0
@@ -219,41 +190,47 @@ class TelemetryBuffer:
         with self._lock:
             t = self.local_time(remote_ms, arrival) if sample_s is None else sample_s
             if t is None:
-                self._rejected["sample stamped from the future"] += 1
+                self._rejected[self._clock.dropped_why] += 1
                 return False
             stale, why = self._frame_moved(series, t, value)
-            if stale is not None:
-                stale.clear()
+            if stale:
+                for old in stale:
+                    old.clear()
                 self._position_epoch += 1
                 self._rejected[why] += 1
-            series.add(t, value, arrival)
+            if not series.add(t, value, arrival):
+                self._rejected["sample not newer than the last one (out of order, repeated or a frozen clock)"] += 1
+                return False
             self.samples += 1
             return True
 
-    def _frame_moved(self, series: _Series, t_s: float, value: np.ndarray) -> Tuple[Optional[_Series], str]:
+    def _frame_moved(self, series: _Series, t_s: float, value: np.ndarray) -> Tuple[Tuple[_Series, ...], str]:
         """The series to empty and the counted reason when this sample shows that the autopilot's frame moved
         since the newest sample of ``series`` (a reboot, a position or a heading faster than flight), else
-        (None, "")."""
+        ((), "")."""
         c = self.config
         if self._clock.reboots != self._reboots:
-            # A rebooted autopilot sets its local origin again: positions from before may name other places.
+            # A rebooted autopilot sets its local origin again: positions from before may name other places. Its
+            # estimator started over too, and samples from before were timed with the old clock's offset: none is
+            # interpolated with, or matched in place of, the new autopilot's.
             self._reboots = self._clock.reboots
             log.warning("the autopilot's clock restarted (a reboot): " + _STARTS_OVER)
-            return self._position, "autopilot rebooted (its clock restarted): earlier positions dropped"
+            return (self._position, self._attitude, self._range, self._rel_alt), \
+                "autopilot rebooted (its clock restarted): earlier positions dropped"
         if series not in (self._position, self._attitude) or not series.times or t_s <= series.times[-1]:
-            return None, ""
+            return (), ""
         dt = t_s - series.times[-1]
         if series is self._position:
             moved = float(np.linalg.norm(value - series.values[-1]))
             if moved <= max(c.min_jump_m, c.max_speed_mps * dt):
-                return None, ""
+                return (), ""
             log.warning("local position jumped %.1f m in %.2f s (EKF reset or glitch): " + _STARTS_OVER, moved, dt)
-            return series, "position jumped (the autopilot's frame moved): earlier positions dropped"
+            return (series,), "position jumped (the autopilot's frame moved): earlier positions dropped"
         turned = abs(math.remainder(float(value[2] - series.values[-1][2]), 2.0 * math.pi))
         if turned <= max(c.min_yaw_jump_rad, c.max_yaw_rate_rad_s * dt):
-            return None, ""
+            return (), ""
         log.warning("heading jumped %.0f° in %.2f s (an EKF yaw reset): " + _STARTS_OVER, math.degrees(turned), dt)
-        return series, "heading jumped (a yaw reset): earlier attitudes dropped"
+        return (series,), "heading jumped (a yaw reset): earlier attitudes dropped"
 
     def add_attitude(self, roll_rad: float, pitch_rad: float, yaw_rad: float, remote_ms: Optional[float] = None,
                      arrival_s: Optional[float] = None, sample_s: Optional[float] = None) -> bool:
