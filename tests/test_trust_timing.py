@@ -204,3 +204,22 @@ def test_edge_run_sends_nothing_from_telemetry_delivered_late_in_bursts(assets, 
     late = [d for d in decisions if d["capture_time_s"] > fake.heard_s + SWITCH_S + 1.0]
     assert late and not any(d["sent"] for d in late)
     assert np.mean([d["reason"].startswith("held:") for d in late]) == 1.0
+
+
+@pytest.mark.parametrize("late_s", [0.2, 0.4])
+def test_fast_samples_after_a_starved_window_are_adopted_at_once(late_s):
+    """The receiving thread held up for a whole window (a loaded companion): every sample of the window arrives
+    ``late_s`` late, the offset rises, and the link's next samples, on time again, look "from the future" against
+    it. The link showed it can do that in the windows before, so they are adopted at once: dropping them as
+    glitches cost a window of telemetry. (At start-up there is no such history: a future sample is dropped, as a
+    glitch 1.9 s ahead must be, tests/test_trust.py.)"""
+    for starved_from_s, starved_s in ((6.0, 2.5), (6.5, 4.5)):   # over one window, over two
+        buf, t0 = TelemetryBuffer(), 1000.0
+        stale = 0
+        for i in range(int(12 * RATE_HZ)):
+            t = i / RATE_HZ
+            late = late_s if starved_from_s <= t < starved_from_s + starved_s else 0.0
+            feed(buf, 5.0 + t, t0 + t + late)
+            if t >= starved_from_s + starved_s + 0.2:   # on time again (and one sample to learn it)
+                stale += not buf.lookup(t0 + t, t0 + t).fresh
+        assert stale == 0, (starved_from_s, stale)

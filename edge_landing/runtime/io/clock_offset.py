@@ -11,7 +11,8 @@ was measured. A sample stamped from the future by more than ``max_future_s`` is 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Optional
+from collections import deque
+from typing import TYPE_CHECKING, Deque, Optional
 
 if TYPE_CHECKING:
     from edge_landing.runtime.io.telemetry import TelemetryConfig
@@ -28,11 +29,16 @@ class ClockOffset:
         self._last_remote_s = -math.inf
         self._future_since_s: Optional[float] = None
         self._behind_since_s: Optional[float] = None
+        # The fastest sample of each of the last few windows: what the link has recently shown it can do. A
+        # sample "from the future" is judged against these, not against the offset alone, which a starved
+        # window (the receiving thread held up) can have raised: the next fast sample must then bring it back.
+        self._recent_minima: Deque[float] = deque(maxlen=config.clock_memory_windows)
         self.dropped_why = ""         # why the last sample mapped to None was dropped
         self.reboots = 0              # times the remote clock restarted (an autopilot reboot)
 
     def reset(self) -> None:
         self.offset_s, self._future_since_s, self._behind_since_s = None, None, None
+        self._recent_minima.clear()
 
     def _restarted(self, remote_s: float, arrival_s: float) -> bool:
         """Stamped ``reboot_jump_s`` before the last sample (the clock went back) or, once it has, still that far
@@ -60,7 +66,7 @@ class ClockOffset:
         diff = arrival_s - remote_s
         if self.offset_s is None:
             self.offset_s, self._window_start_s, self._window_min_s = diff, arrival_s, diff
-        elif diff < self.offset_s - c.max_future_s:
+        elif diff < min([self.offset_s, *self._recent_minima]) - c.max_future_s:
             # Stamped from the future: one glitch is dropped; a clock that stays ahead for a whole window
             # has jumped, and is re-learnt from there.
             if self._future_since_s is None:
@@ -78,5 +84,6 @@ class ClockOffset:
             # Forget older minima, so a drifting clock is followed; but only as fast as clocks drift: a window
             # whose fastest sample is much later than the offset shows a delayed link, not a slower clock.
             self.offset_s = min(self._window_min_s, self.offset_s + c.max_drift * elapsed_s)
+            self._recent_minima.append(self._window_min_s)
             self._window_start_s, self._window_min_s = arrival_s, diff
         return remote_s + self.offset_s

@@ -68,6 +68,7 @@ class TelemetryConfig:
     # clock_window_s): adopted, one such glitch put every later sample that far in the past, beyond window_s, and
     # telemetry was lost for 2.7 s (0.5 s: one sample 0.45 s ahead). Up to this much it only shifts the matching.
     max_future_s: float = 0.15
+    clock_memory_windows: int = 10  # "from the future" is judged against the fastest sample of this many windows
     max_tilt_rad: float = math.radians(60.0)  # |roll|, |pitch| beyond this are not a multicopter in flight
     max_agl_m: float = 1000.0   # relative altitude above this is not believed
     max_position_m: float = 1.0e5
