@@ -56,9 +56,10 @@ def across_rms(x, y, rx, ry, gx, gy, omega):
 
 
 def test_a_pair_with_a_tenth_of_a_degree_of_attitude_drift_still_measures_the_box():
-    """The box scene of test_motion, the first frame's reported attitude off by 0.15° in pitch and yaw (an
-    autopilot's drift over seconds): with the fit, the flow noise stays near its floor and the box reads 2 m;
-    without it, the drift is read as flow noise (about a pixel at 320 px across)."""
+    """The box scene of test_motion, two seconds apart, the first frame's reported attitude off by 0.15° in pitch
+    and yaw (an autopilot's drift, 0.1°/s): with the fit, the flow noise stays near its floor and the box reads
+    2 m; without it, the drift is read as flow noise (about a pixel at 320 px across). The same error between
+    frames 0.1 s apart is a drift of 1.5°/s: that attitude is not trusted, and the pair gives no evidence."""
     pytest.importorskip("edge_landing.sim", reason="the sim extra (embreex) renders the test world")
     from dataclasses import replace
 
@@ -71,12 +72,15 @@ def test_a_pair_with_a_tenth_of_a_degree_of_attitude_drift_still_measures_the_bo
     frames = list(_frames(world, [(0.0, -6.0, -40.0), (0.0, 6.0, -40.0)]))
     drift = math.radians(0.15)
     results = {}
-    for fit in (True, False):
-        stage = MotionStage(replace(MotionConfig(), rotation_fit=RotationFitConfig(enabled=fit)), INTR, MOUNT)
-        for k, t, r, state in frames:
+    for fit, apart_s in ((True, 2.0), (False, 2.0), ("fast", 0.1)):
+        stage = MotionStage(replace(MotionConfig(), rotation_fit=RotationFitConfig(enabled=bool(fit))), INTR, MOUNT)
+        for k, _t, r, state in frames:
             att = state.attitude if k else Attitude(0.0, drift, drift)
             pose = CameraPose.of(MOUNT, att, state.position_ned_m, state.agl_m)
-            results[fit] = stage.update(r.rgb, pose, t, focus_ned_m=np.array([box_n, box_e, 0.0]))
+            results[fit] = stage.update(r.rgb, pose, k * apart_s, focus_ned_m=np.array([box_n, box_e, 0.0]))
+        if fit == "fast":
+            assert results[fit] is None and "attitude drifts" in stage.last_reason, stage.last_reason
+            assert float(stage.last_reason.split("drifts ")[1].split("°")[0]) > 1.0   # about 2°/s
     fitted, raw = results[True], results[False]
     assert fitted is not None and raw is not None
     assert fitted.flow_noise_px < 0.5 < raw.flow_noise_px, (fitted.flow_noise_px, raw.flow_noise_px)

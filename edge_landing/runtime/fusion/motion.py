@@ -371,13 +371,18 @@ class MotionStage:
         xr = ((ur - self.k_cv[0, 2]) * k_inv[0, 0], (vr - self.k_cv[1, 2]) * k_inv[1, 1])
         xc = self._norm[:, rs, cs]
         # The telemetry's rotation drift between the pair, measured across the epipolar lines (rotation_fit).
-        omega = pair_rotation_error(xc, xr, rot, t, n, d, in_ref & tex & (photo <= cfg.max_photometric_error),
+        f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
+        omega = pair_rotation_error(xc, xr, rot, t, n, d, in_ref & tex & (photo <= cfg.max_photometric_error), f,
                                     cfg.rotation_fit)
         if np.any(omega != 0.0):
+            drift_deg_s = math.degrees(float(np.linalg.norm(omega))) / max(time_s - ref.time_s, 1e-3)
+            if drift_deg_s > cfg.rotation_fit.max_drift_deg_s:
+                self.last_reason = (f"the autopilot's attitude drifts {drift_deg_s:.2f}°/s against the images: "
+                                    f"its attitude is not trusted")
+                return None
             dx, dy = rotation_flow(xr[0], xr[1], omega)
             xr = (xr[0] - dx, xr[1] - dy)
         hgt, gnorm, cross = parallax_height(xc, xr, rot, t, n, d)
-        f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
         shape = cur.shape
         # The residual across the epipolar direction is flow error only (parallax lies along it): its robust
         # spread is this pair's flow noise, used when above the configured floor.

@@ -24,10 +24,22 @@ from edge_landing.runtime.fusion.parallax import plane_residuals
 @dataclass(frozen=True)
 class RotationFitConfig:
     enabled: bool = True
-    max_rad: float = 0.02          # larger fitted corrections (1.1°) are not a drift: the pair is left as it is
+    max_rad: float = 0.01          # larger fitted corrections (0.57°) are not a drift: the pair is left as it is
     stride_px: int = 3             # every this many pixels each way are used for the fit
     min_points: int = 200
     ridge: float = 0.01            # × the number of points: keeps unobservable rotations at zero
+    # Points whose cross residual exceeds this are not fitted: a drift moves points by a pixel or two, while
+    # flow that failed (a roof's tens of pixels of parallax smoothed by DIS) is off by more, in a pattern a
+    # rotation would partly absorb and then spread over the whole window.
+    max_residual_px: float = 4.0
+    # Applied only when it explains the cross residual: its median must shrink to this share. With exact poses
+    # the residual is flow noise, which three angles cannot explain, and the pair is measured as before.
+    min_gain: float = 0.8
+    # A fitted drift faster than this (the rotation over the pair's time apart) says the autopilot's attitude is
+    # wrong by more than its drift between frames: a pixel's ray then meets the ground metres from where it
+    # is placed (1.5° at 60 m: 1.6 m and more along the line of sight), so the pair gives no evidence at all.
+    # An EKF's attitude drifts by a few hundredths of a degree per second.
+    max_drift_deg_s: float = 0.1
 
 
 def rotation_flow(x: np.ndarray, y: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -37,24 +49,27 @@ def rotation_flow(x: np.ndarray, y: np.ndarray, omega: np.ndarray) -> tuple[np.n
 
 
 def pair_rotation_error(xc: np.ndarray, xr: tuple[np.ndarray, np.ndarray], rot: np.ndarray, t: np.ndarray,
-                        n: np.ndarray, d: float, use: np.ndarray,
+                        n: np.ndarray, d: float, use: np.ndarray, focal_px: float,
                         config: RotationFitConfig = RotationFitConfig()) -> np.ndarray:
     """The relative-rotation error (radians, 3) of a pair measured against the plane's homography (the
     arguments of parallax.parallax_height: ``xc`` 2×H×W, ``xr`` two H×W arrays), from every ``stride_px``-th
-    pixel where ``use`` (H×W) holds; zeros when disabled, too few points, or a fit larger than ``max_rad``."""
+    pixel where ``use`` (H×W) holds; zeros when disabled or when :func:`fit_rotation` finds none.
+    ``focal_px`` converts the pixel bounds to normalised units."""
     if not config.enabled:
         return np.zeros(3)
     sel = (slice(None, None, config.stride_px), slice(None, None, config.stride_px))
     x_r = (xr[0][sel], xr[1][sel])
     _, z0, gx, gy, rx, ry = plane_residuals((xc[0][sel], xc[1][sel]), x_r, rot, t, n, d)
-    return fit_rotation(x_r, rx, ry, gx, gy, use[sel] & (z0 > 0), config)
+    return fit_rotation(x_r, rx, ry, gx, gy, use[sel] & (z0 > 0), config, max_residual=config.max_residual_px / focal_px)
 
 
 def fit_rotation(xr: tuple[np.ndarray, np.ndarray], rx: np.ndarray, ry: np.ndarray, gx: np.ndarray,
-                 gy: np.ndarray, use: np.ndarray, config: RotationFitConfig = RotationFitConfig()) -> np.ndarray:
+                 gy: np.ndarray, use: np.ndarray, config: RotationFitConfig = RotationFitConfig(),
+                 max_residual: float = np.inf) -> np.ndarray:
     """The small rotation (radians, 3) whose flow best explains the residuals (rx, ry) across the epipolar
-    directions (gx, gy) at the points ``xr`` where ``use`` holds; zeros when there are too few points or the
-    fit is larger than ``max_rad``. Inputs of one shape (normalised units)."""
+    directions (gx, gy) at the points ``xr`` where ``use`` holds and the cross residual is at most
+    ``max_residual``; zeros when there are too few points, the fit is larger than ``max_rad`` or explains too
+    little (``min_gain``). Inputs of one shape (normalised units)."""
     zero = np.zeros(3)
     with np.errstate(invalid="ignore"):
         ok = use & np.isfinite(rx) & np.isfinite(ry) & (gx * gx + gy * gy > 0)
@@ -64,6 +79,10 @@ def fit_rotation(xr: tuple[np.ndarray, np.ndarray], rx: np.ndarray, ry: np.ndarr
     g = np.hypot(gx[ok], gy[ok])
     ex, ey = gy[ok] / g, -gx[ok] / g                            # unit vector across the epipolar line
     c = rx[ok] * ex + ry[ok] * ey                               # the residual across it
+    small = np.abs(c) <= max_residual
+    if int(small.sum()) < config.min_points:
+        return zero
+    x, y, ex, ey, c = x[small], y[small], ex[small], ey[small], c[small]
     cols = [rotation_flow(x, y, unit) for unit in np.eye(3)]
     a = np.stack([fx * ex + fy * ey for fx, fy in cols], axis=1)
     keep = np.ones(c.size, bool)
@@ -76,5 +95,8 @@ def fit_rotation(xr: tuple[np.ndarray, np.ndarray], rx: np.ndarray, ry: np.ndarr
         res = c - a @ omega
         keep = np.abs(res) <= 3.0 * 1.4826 * float(np.median(np.abs(res))) + 1e-12
     if not np.all(np.isfinite(omega)) or float(np.max(np.abs(omega))) > config.max_rad:
+        return zero
+    before = float(np.median(np.abs(c[keep])))
+    if float(np.median(np.abs(c[keep] - a[keep] @ omega))) > config.min_gain * before:
         return zero
     return omega
