@@ -223,3 +223,13 @@ def test_fast_samples_after_a_starved_window_are_adopted_at_once(late_s):
             if t >= starved_from_s + starved_s + 0.2:   # on time again (and one sample to learn it)
                 stale += not buf.lookup(t0 + t, t0 + t).fresh
         assert stale == 0, (starved_from_s, stale)
+
+
+def test_a_sample_without_a_time_stamp_is_dropped_not_stamped_on_arrival():
+    """time_boot_ms = 0 from the link: stamped on arrival, held-back telemetry would look fresh."""
+    buf = TelemetryBuffer()
+    assert not buf.add_attitude(0.0, 0.0, 0.0, 0, 1000.0)
+    assert not buf.add_attitude(0.0, 0.0, 0.0, math.nan, 1000.1)
+    assert not buf.lookup(1000.1, 1000.1).fresh
+    assert any(k.startswith("sample without a time stamp") for k in buf.rejected())
+    assert buf.add_attitude(0.0, 0.0, 0.0, None, 1000.2)    # a caller without autopilot time: its arrival

@@ -178,10 +178,16 @@ class TelemetryBuffer:
             self._rejected[reason] += 1
 
     def local_time(self, remote_ms: Optional[float], arrival_s: Optional[float] = None) -> Optional[float]:
-        """Map an autopilot ``time_boot_ms`` onto the local monotonic clock (None: from the future, dropped)."""
+        """Map an autopilot ``time_boot_ms`` onto the local monotonic clock (None: dropped, and why in the clock's
+        ``dropped_why``). Without a ``remote_ms`` (a caller that has no autopilot time) the arrival time is used.
+        A message whose ``time_boot_ms`` is 0 (or not a number) is dropped: stamped on arrival, telemetry held
+        back and delivered late would be taken as fresh."""
         arrival_s = time.monotonic() if arrival_s is None else arrival_s
-        if remote_ms is None or not _finite(remote_ms) or remote_ms <= 0:
+        if remote_ms is None:
             return arrival_s
+        if not _finite(remote_ms) or remote_ms <= 0:
+            self._clock.dropped_why = "sample without a time stamp (time_boot_ms 0): its age cannot be told"
+            return None
         return self._clock.map(remote_ms / 1000.0, arrival_s)
 
     def _add(self, series: _Series, value: np.ndarray, remote_ms: Optional[float], arrival_s: Optional[float],
