@@ -42,7 +42,7 @@ from edge_landing.runtime.fusion.parallax import (
     plane_homography,
 )
 from edge_landing.runtime.fusion.plane_sweep import sweep_plane
-from edge_landing.runtime.fusion.rotation_fit import pair_rotation_error, rotation_flow
+from edge_landing.runtime.fusion.rotation_fit import drift_beyond_an_ekf, pair_rotation_error, rotation_flow
 from edge_landing.runtime.fusion.streaks import RainFilter
 
 __all__ = ["POSE_IMAGE", "POSE_TELEMETRY", "CameraPose", "DisPreset", "MotionConfig", "MotionStage", "ParallaxResult",
@@ -375,10 +375,10 @@ class MotionStage:
         omega = pair_rotation_error(xc, xr, rot, t, n, d, in_ref & tex & (photo <= cfg.max_photometric_error), f,
                                     cfg.rotation_fit)
         if np.any(omega != 0.0):
-            drift_deg_s = math.degrees(float(np.linalg.norm(omega))) / max(time_s - ref.time_s, 1e-3)
-            if drift_deg_s > cfg.rotation_fit.max_drift_deg_s:
-                self.last_reason = (f"the autopilot's attitude drifts {drift_deg_s:.2f}°/s against the images: "
-                                    f"its attitude is not trusted")
+            drift_deg = drift_beyond_an_ekf(omega, time_s - ref.time_s, cfg.rotation_fit)
+            if drift_deg:
+                self.last_reason = (f"the autopilot's attitude moved {drift_deg:.2f}° in {time_s - ref.time_s:.1f} s "
+                                    f"against the images, more than an estimator drifts")
                 return None
             dx, dy = rotation_flow(xr[0], xr[1], omega)
             xr = (xr[0] - dx, xr[1] - dy)

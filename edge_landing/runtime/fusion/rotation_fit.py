@@ -14,6 +14,7 @@ normalised image coordinates of the reference camera (OpenCV, x right, y down). 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,11 +36,20 @@ class RotationFitConfig:
     # Applied only when it explains the cross residual: its median must shrink to this share. With exact poses
     # the residual is flow noise, which three angles cannot explain, and the pair is measured as before.
     min_gain: float = 0.8
-    # A fitted drift faster than this (the rotation over the pair's time apart) says the autopilot's attitude is
-    # wrong by more than its drift between frames: a pixel's ray then meets the ground metres from where it
-    # is placed (1.5° at 60 m: 1.6 m and more along the line of sight), so the pair gives no evidence at all.
-    # An EKF's attitude drifts by a few hundredths of a degree per second.
+    # A fitted rotation larger than drift_floor_deg + max_drift_deg_s × the pair's time apart says the
+    # autopilot's attitude drifts faster than an EKF's (a few hundredths of a degree per second), so it may be
+    # off by degrees: a pixel's ray then meets the ground metres from where it is placed (1.5° at 60 m: 1.6 m,
+    # more along the line of sight). That pair gives no evidence (distrusting the next pairs for 10 s as well
+    # halved the targets under typical errors, docs/MEASUREMENTS.md). The floor is the fit's own noise, which
+    # pairs a fraction of a second apart would otherwise read as a fast drift.
     max_drift_deg_s: float = 0.1
+    drift_floor_deg: float = 0.05
+
+
+def drift_beyond_an_ekf(omega: np.ndarray, apart_s: float, config: RotationFitConfig) -> float:
+    """The fitted rotation in degrees when it is more than an EKF drifts in ``apart_s`` seconds, else 0."""
+    angle_deg = math.degrees(float(np.linalg.norm(omega)))
+    return angle_deg if angle_deg > config.drift_floor_deg + config.max_drift_deg_s * max(apart_s, 0.0) else 0.0
 
 
 def rotation_flow(x: np.ndarray, y: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
