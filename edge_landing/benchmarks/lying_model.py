@@ -13,6 +13,9 @@ the world's heights (recall of obstacles >= 1 m among cells it measured to <= 1 
 
 ``--no-position`` replays telemetry with attitude and height above ground but no position: geometry then runs
 on the image-only pose (fusion.image_motion); targets are judged where they point from the true pose.
+``--pose-errors typical|harsh`` adds an autopilot's estimation errors to the telemetry fusion sees
+(benchmarks.pose_errors); targets are judged where the autopilot would take them, relative to where it
+believes it is.
 
     python -m edge_landing.benchmarks.lying_model --style urban --seed 41 --frames 200 --models lying shipped
 """
