@@ -358,7 +358,7 @@ class MotionStage:
         xx, yy = self._pix[0][rs, cs], self._pix[1][rs, cs]
         mx, my = xx + flow[..., 0], yy + flow[..., 1]
         matched = cv2.remap(wrp, mx - cs.start, my - rs.start, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        photo = np.abs(cur.astype(np.int16) - matched.astype(np.int16))
+        photo_ok = np.abs(cur.astype(np.int16) - matched.astype(np.int16)) <= cfg.max_photometric_error
         # Where the matched point lies in the reference image (pixel-centre convention), then normalised.
         qx = hom[0, 0] * mx + hom[0, 1] * my + hom[0, 2]
         qy = hom[1, 0] * mx + hom[1, 1] * my + hom[1, 2]
@@ -372,8 +372,7 @@ class MotionStage:
         xc = self._norm[:, rs, cs]
         # The telemetry's rotation drift between the pair, measured across the epipolar lines (rotation_fit).
         f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
-        omega = pair_rotation_error(xc, xr, rot, t, n, d, in_ref & tex & (photo <= cfg.max_photometric_error), f,
-                                    cfg.rotation_fit)
+        omega = pair_rotation_error(xc, xr, rot, t, n, d, in_ref & tex & photo_ok, f, cfg.rotation_fit)
         if np.any(omega != 0.0):
             drift_deg = drift_beyond_an_ekf(omega, time_s - ref.time_s, cfg.rotation_fit)
             if drift_deg:
@@ -387,7 +386,7 @@ class MotionStage:
         # The residual across the epipolar direction is flow error only (parallax lies along it): its robust
         # spread is this pair's flow noise, used when above the configured floor.
         # Textureless pixels are left out: their flow is filled in from around them, with no residual of its own.
-        matched_ok = in_ref & np.isfinite(hgt) & (photo <= cfg.max_photometric_error)
+        matched_ok = in_ref & np.isfinite(hgt) & photo_ok
         noise_px = cfg.flow_noise_px
         spread = cross[matched_ok & tex]
         if spread.size >= 100:

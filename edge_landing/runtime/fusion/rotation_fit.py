@@ -96,7 +96,7 @@ def fit_rotation(xr: tuple[np.ndarray, np.ndarray], rx: np.ndarray, ry: np.ndarr
     cols = [rotation_flow(x, y, unit) for unit in np.eye(3)]
     a = np.stack([fx * ex + fy * ey for fx, fy in cols], axis=1)
     keep = np.ones(c.size, bool)
-    omega = zero
+    omega, res = zero, c
     for _ in range(2):   # a least-squares fit, then again without the points it leaves far out (occlusions)
         ak, ck = a[keep], c[keep]
         if ck.size < config.min_points:
@@ -106,7 +106,6 @@ def fit_rotation(xr: tuple[np.ndarray, np.ndarray], rx: np.ndarray, ry: np.ndarr
         keep = np.abs(res) <= 3.0 * 1.4826 * float(np.median(np.abs(res))) + 1e-12
     if not np.all(np.isfinite(omega)) or float(np.max(np.abs(omega))) > config.max_rad:
         return zero
-    before = float(np.median(np.abs(c[keep])))
-    if float(np.median(np.abs(c[keep] - a[keep] @ omega))) > config.min_gain * before:
-        return zero
+    if float(np.median(np.abs(res[keep]))) > config.min_gain * float(np.median(np.abs(c[keep]))):
+        return zero   # res is c - a @ omega, and keep was chosen from it
     return omega

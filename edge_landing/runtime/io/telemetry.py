@@ -179,15 +179,11 @@ class TelemetryBuffer:
 
     def local_time(self, remote_ms: Optional[float], arrival_s: Optional[float] = None) -> Optional[float]:
         """Map an autopilot ``time_boot_ms`` onto the local monotonic clock (None: dropped, and why in the clock's
-        ``dropped_why``). Without a ``remote_ms`` (a caller that has no autopilot time) the arrival time is used.
-        A message whose ``time_boot_ms`` is 0 (or not a number) is dropped: stamped on arrival, telemetry held
-        back and delivered late would be taken as fresh."""
+        ``dropped_why``). Without a ``remote_ms`` (a caller that has no autopilot time) the arrival time is used;
+        ``_add`` drops a message whose ``time_boot_ms`` is 0 or not a number before it gets here."""
         arrival_s = time.monotonic() if arrival_s is None else arrival_s
         if remote_ms is None:
             return arrival_s
-        if not _finite(remote_ms) or remote_ms <= 0:
-            self._clock.dropped_why = "sample without a time stamp (time_boot_ms 0): its age cannot be told"
-            return None
         return self._clock.map(remote_ms / 1000.0, arrival_s)
 
     def _add(self, series: _Series, value: np.ndarray, remote_ms: Optional[float], arrival_s: Optional[float],
@@ -195,6 +191,10 @@ class TelemetryBuffer:
         """``sample_s``: the sample's local time when the caller knows it (else mapped from ``remote_ms``)."""
         arrival = time.monotonic() if arrival_s is None else arrival_s
         with self._lock:
+            if sample_s is None and remote_ms is not None and not (_finite(remote_ms) and remote_ms > 0):
+                # Stamped on its arrival instead, telemetry held back and delivered late would look fresh.
+                self._rejected["sample without a time stamp (time_boot_ms 0): its age cannot be told"] += 1
+                return False
             t = self.local_time(remote_ms, arrival) if sample_s is None else sample_s
             if t is None:
                 self._rejected[self._clock.dropped_why] += 1
