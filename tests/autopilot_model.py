@@ -9,6 +9,7 @@ What it models, from ArduPilot's documented precision-landing behaviour (docs/cl
 - HEARTBEAT 1 Hz (MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA, ArduCopter mode numbers); ATTITUDE,
   GLOBAL_POSITION_INT (relative_alt), LOCAL_POSITION_NED, DISTANCE_SENSOR (orientation 25, cm) at 20 Hz with
   ``time_boot_ms``; EKF_STATUS_REPORT (a healthy EKF with GPS) with them; COMMAND_ACK for every COMMAND_LONG;
+  TIMESYNC answered (``tc1`` = its boot clock in ns, ``ts1`` echoed, as GCS_Common.cpp does);
   STATUSTEXT on estimator events.
 - LANDING_TARGET: frame BODY_FRD (12) or LOCAL_FRD only ("Plnd: Frame not supported" otherwise),
   ``position_valid = 1`` and ``distance > 0``; only the direction (x, y, z)/|.| is used, rotated by the attitude
@@ -192,6 +193,8 @@ class AutopilotModel:
             self.target_yaw = None if yaw_ignored else float(msg.yaw)
         elif kind == "LANDING_TARGET":
             self._landing_target(msg, now_s)
+        elif kind == "TIMESYNC" and msg.tc1 == 0:   # ArduPilot answers with its boot clock at receipt, in ns
+            conn.mav.timesync_send(int((time.monotonic() - self.boot_s) * 1e9), msg.ts1)
 
     def _command(self, msg) -> bool:
         m = self.mavutil.mavlink

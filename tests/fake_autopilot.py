@@ -4,14 +4,16 @@ Real pymavlink on both ends over loopback UDP (or TCP): it listens on ``udpin:12
 ``tcpin:``), records every message edge-run sends with its arrival time, and, once edge-run is heard, calls
 ``script(fake, t_s)`` every tick (``t_s`` = seconds since edge-run was first heard). The script decides what
 to send; :meth:`healthy` sends what a well-behaved ArduPilot would (HEARTBEAT, ATTITUDE, LOCAL_POSITION_NED,
-GLOBAL_POSITION_INT), with ``time_boot_ms`` from this fake's own clock.
+GLOBAL_POSITION_INT), with ``time_boot_ms`` from this fake's own clock. Like ArduPilot (GCS_Common.cpp,
+handle_timesync) it answers a TIMESYNC request with ``tc1`` = that clock at the request's arrival, in ns, and
+``ts1`` echoed; ``timesync`` = False makes it ignore them, ``timesync_delay_s`` holds each answer back.
 """
 from __future__ import annotations
 
 import math
 import threading
 import time
-from typing import Callable, List, Optional, Tuple
+from typing import Any, Callable, List, Optional, Tuple
 
 from edge_landing.runtime.io.mavlink_conn import load_mavutil
 
@@ -28,6 +30,10 @@ class FakeAutopilot:
         self.heard_s: Optional[float] = None             # monotonic time edge-run was first heard
         self.read = True                                 # False: stop reading (a stuck peer)
         self.errors: List[str] = []
+        self.clock_rate = 1.0                            # boot clock speed against real time
+        self.timesync = True                             # answer TIMESYNC requests (ArduPilot and PX4 do)
+        self.timesync_delay_s = 0.0
+        self._answers: List[Tuple[float, int, int]] = []  # (due monotonic s, tc1 ns, ts1)
         self._t0 = time.monotonic()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -55,8 +61,20 @@ class FakeAutopilot:
         return [m.text for _, m in self.of_type("STATUSTEXT")]
 
     # -- what the script can send ---------------------------------------------------------------------
-    def boot_ms(self, clock_rate: float = 1.0, offset_ms: float = 0.0) -> int:
-        return int((time.monotonic() - self._t0) * 1000 * clock_rate + offset_ms) + 1
+    def boot_ms(self, clock_rate: Optional[float] = None, offset_ms: float = 0.0) -> int:
+        rate = self.clock_rate if clock_rate is None else clock_rate
+        return int((time.monotonic() - self._t0) * 1000 * rate + offset_ms) + 1
+
+    def _on_timesync(self, msg: Any, now: float) -> None:
+        if self.timesync and msg.tc1 == 0:
+            tc1_ns = int((now - self._t0) * 1e9 * self.clock_rate) + 1_000_000
+            self._answers.append((now + self.timesync_delay_s, tc1_ns, int(msg.ts1)))
+
+    def _send_answers(self, now: float) -> None:
+        due = [a for a in self._answers if a[0] <= now]
+        self._answers = [a for a in self._answers if a[0] > now]
+        for _, tc1, ts1 in due:
+            self.conn.mav.timesync_send(tc1, ts1)
 
     def healthy(self, boot_ms: Optional[int] = None, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0,
                 ned: Tuple[float, float, float] = (5.0, -3.0, -10.0), rel_alt_m: Optional[float] = None,
@@ -81,9 +99,16 @@ class FakeAutopilot:
                         self.messages.append((now, msg))
                     if self.heard_s is None:
                         self.heard_s = now
+                    if msg.get_type() == "TIMESYNC":
+                        self._on_timesync(msg, now)
             else:
                 time.sleep(0.005)
             now = time.monotonic()
+            if self._answers and self._connected():
+                try:
+                    self._send_answers(now)
+                except Exception as exc:  # a send into a closed socket: note it, keep the fake alive
+                    self.errors.append(str(exc))
             if self.heard_s is not None and now >= next_tick and self._connected():
                 next_tick = now + 1.0 / self.rate_hz
                 try:

@@ -71,7 +71,8 @@ def test_silent_autopilot_means_no_target_and_it_is_announced(assets, tmp_path, 
 
 def test_clock_glitch_and_a_slow_autopilot_clock_keep_telemetry(assets, tmp_path):
     def script(fake: FakeAutopilot, t: float) -> None:
-        ms = fake.boot_ms(clock_rate=0.95)          # 5 % slow: 0.3 s behind after 6 s (the match window is 0.25 s)
+        fake.clock_rate = 0.95                      # 5 % slow: 0.3 s behind after 6 s (the match window is 0.25 s)
+        ms = fake.boot_ms()                         # (its TIMESYNC answers run on the same slow clock)
         fake.healthy(boot_ms=ms)
         if 1.0 <= t < 1.04:                          # one ATTITUDE stamped 1.9 s in the future
             fake.conn.mav.attitude_send(ms + 1900, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)

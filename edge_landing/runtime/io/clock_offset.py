@@ -7,12 +7,16 @@ Unlike ArduPilot's, a sample more than 500 ms late is not moved forward, nor the
 keeps its own time, so telemetry held back and delivered in a burst is not matched to frames captured after it
 was measured. A sample stamped from the future by more than ``max_future_s`` is dropped, and so is one stamped
 ``reboot_jump_s`` before the last until the clock has stayed behind for a window (then the autopilot rebooted).
+When the autopilot answers TIMESYNC, the offset is capped by what its round trips allow (``timesync.py``), so a
+link that delays all telemetry steadily does not pass the delay off as an offset.
 """
 from __future__ import annotations
 
 import math
 from collections import deque
 from typing import TYPE_CHECKING, Deque, Optional
+
+from edge_landing.runtime.io.timesync import RoundTrips
 
 if TYPE_CHECKING:
     from edge_landing.runtime.io.telemetry import TelemetryConfig
@@ -35,10 +39,13 @@ class ClockOffset:
         self._recent_minima: Deque[float] = deque(maxlen=config.clock_memory_windows)
         self.dropped_why = ""         # why the last sample mapped to None was dropped
         self.reboots = 0              # times the remote clock restarted (an autopilot reboot)
+        self.round_trips = RoundTrips(config.timesync, config.max_drift)
+        self.delay_s = 0.0            # how much earlier the round trips put the last sample than the offset did
 
     def reset(self) -> None:
         self.offset_s, self._future_since_s, self._behind_since_s = None, None, None
         self._recent_minima.clear()
+        self.round_trips.forget_clock()
 
     def _restarted(self, remote_s: float, arrival_s: float) -> bool:
         """Stamped ``reboot_jump_s`` before the last sample (the clock went back) or, once it has, still that far
@@ -86,4 +93,7 @@ class ClockOffset:
             self.offset_s = min(self._window_min_s, self.offset_s + c.max_drift * elapsed_s)
             self._recent_minima.append(self._window_min_s)
             self._window_start_s, self._window_min_s = arrival_s, diff
-        return remote_s + self.offset_s
+        # The offset is the fastest sample's delay, so an upper bound: a lower one from the round trips wins.
+        cap = self.round_trips.cap_s(arrival_s, self.offset_s)
+        self.delay_s = 0.0 if cap is None else max(self.offset_s - cap, 0.0)
+        return remote_s + self.offset_s - self.delay_s

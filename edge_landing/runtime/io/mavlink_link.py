@@ -90,7 +90,7 @@ class LinkCounts:
 
     KEYS = ("targets", "heartbeats", "statustext", "received", "send_errors", "reconnects",
             "skipped_px4_no_position", "dropped_old_targets", "dropped_backed_up", "dropped_not_heard",
-            "other_senders", "before_autopilot", "bad_signature")
+            "other_senders", "before_autopilot", "bad_signature", "timesync_requests", "timesync_answers")
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -130,6 +130,8 @@ class MavlinkLink:
         self._skip_reported = False
         self._last_telemetry_s = -math.inf
         self._last_request_s = -math.inf
+        self._next_timesync_s = 0.0
+        self._timesync_said = False
 
     # -- life cycle -----------------------------------------------------------------------------------
     def start(self) -> MavlinkLink:
@@ -310,6 +312,7 @@ class MavlinkLink:
                 self._heartbeat()
                 next_heartbeat_s = now + self.config.heartbeat_period_s
             self._request_telemetry(now)
+            self._timesync(now)
             conn = self._conn
             try:
                 msg = conn.recv_match(blocking=True, timeout=0.05)
@@ -354,6 +357,35 @@ class MavlinkLink:
             self._send(m.MAVLink_command_long_message(self.peer[0], self.peer[1], m.MAV_CMD_SET_MESSAGE_INTERVAL,
                                                       0, msg_id, interval, 0, 0, 0, 0, 0))
 
+    def _timesync(self, now: float) -> None:
+        """A TIMESYNC request a second to the autopilot: its answers tell how late telemetry arrives
+        (``timesync.py``). Said once whether it answers: without answers a steady delay looks like a clock offset."""
+        period = self.telemetry.config.timesync.period_s
+        if self.peer is None or now < self._next_timesync_s:
+            return
+        self._next_timesync_s = now + period
+        answered, round_trip = self.telemetry.round_trips()
+        if not self._timesync_said and (answered or self.counts["timesync_requests"] >= 5):
+            self._timesync_said = True
+            if answered:
+                log.info("the autopilot answers TIMESYNC (round trip %.0f ms): telemetry that arrives late is "
+                         "refused by its real age", 1000.0 * (round_trip or 0.0))
+            else:
+                log.warning("the autopilot does not answer TIMESYNC: telemetry delayed steadily on the link cannot "
+                            "be told from a clock offset (one-way time stamps only)")
+        ts1 = self.telemetry.timesync_request(time.monotonic())
+        if self._send(self._mavutil.mavlink.MAVLink_timesync_message(0, ts1)):
+            self.counts.add("timesync_requests")
+
+    def _on_timesync(self, msg: Any, arrival: float) -> None:
+        """An answer to our request, or the autopilot's own request (answered with this clock, in ns, as a
+        MAVLink component should: PX4 converts our LANDING_TARGET time stamps with it)."""
+        if int(msg.tc1) != 0:
+            if self.telemetry.timesync_reply(int(msg.tc1), int(msg.ts1), arrival):
+                self.counts.add("timesync_answers")
+            return
+        self._send(self._mavutil.mavlink.MAVLink_timesync_message(int(arrival * 1e9), int(msg.ts1)))
+
     def _choose_peer(self, msg: Any, sender: Tuple[int, int]) -> None:
         """The first autopilot-type HEARTBEAT (of ``target_system`` when given) names the one autopilot."""
         if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in NOT_A_VEHICLE_TYPES:
@@ -380,6 +412,9 @@ class MavlinkLink:
         arrival = time.monotonic()
         self._last_heard_s = arrival
         t = self.telemetry
+        if kind == "TIMESYNC":
+            self._on_timesync(msg, arrival)
+            return
         if kind in ESTIMATOR_MESSAGES:
             m = self._mavutil.mavlink
             glitch = m.EKF_GPS_GLITCHING if kind == "EKF_STATUS_REPORT" else m.ESTIMATOR_GPS_GLITCH

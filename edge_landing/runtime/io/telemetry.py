@@ -18,6 +18,9 @@ The link thread calls ``add_*`` as messages arrive; the pipeline asks ``lookup(c
   fusion and the committed spot, which live in local NED, start over.
 - Freshness: a match is fresh only when the newest accepted attitude arrived no longer than ``fresh_s``
   ago on the companion's clock.
+- Round trips: when the autopilot answers TIMESYNC, its answers cap the clock offset (telemetry delivered late
+  steadily keeps its real, old time) and a round trip longer than ``timesync.max_round_trip_s`` means no match;
+  targets wait ``timesync.first_answer_wait_s`` for the first answer (``timesync.py``).
 - The autopilot's own word: while its estimator status (EKF_STATUS_REPORT, ESTIMATOR_STATUS) says the attitude
   is not usable there is no match; while it says the horizontal position is not usable, states carry none.
 
@@ -40,6 +43,7 @@ import numpy as np
 from edge_landing.runtime.core.camera import Attitude
 from edge_landing.runtime.core.messages import VehicleState
 from edge_landing.runtime.io.clock_offset import ClockOffset
+from edge_landing.runtime.io.timesync import TimeSyncConfig
 
 __all__ = ["ClockOffset", "TelemetryBuffer", "TelemetryConfig", "TelemetryMatch", "RANGEFINDER_DOWN"]
 log = logging.getLogger(__name__)
@@ -85,6 +89,7 @@ class TelemetryConfig:
     # The autopilot's own estimator status (EKF_STATUS_REPORT, ESTIMATOR_STATUS) counts for this long after it
     # arrived; without one the estimate is taken as good (autopilots that do not send it).
     estimator_status_s: float = 3.0
+    timesync: TimeSyncConfig = TimeSyncConfig()
 
 
 class _Series:
@@ -325,6 +330,42 @@ class TelemetryBuffer:
             self._clock.reset()
             self._position_epoch += 1
 
+    def timesync_request(self, now_s: float) -> int:
+        """The ``ts1`` (ns) of a TIMESYNC request about to be sent at ``now_s``."""
+        with self._lock:
+            return self._clock.round_trips.request(now_s)
+
+    def timesync_reply(self, tc1_ns: int, ts1_ns: int, arrival_s: Optional[float] = None) -> bool:
+        """The autopilot's answer to a request; False when it answers none of ours (another component's request
+        on a shared link: counted in ``RoundTrips.unmatched`` only). An answer on another clock than the
+        telemetry's is counted as rejected."""
+        arrival = time.monotonic() if arrival_s is None else arrival_s
+        with self._lock:
+            trips = self._clock.round_trips
+            if not trips.reply(int(tc1_ns), int(ts1_ns), arrival):
+                return False
+            offset = self._clock.offset_s
+            if offset is None:
+                return True
+            if trips.note_other_clock(offset):
+                self._rejected["TIMESYNC answer on another clock than the telemetry's (ignored)"] += 1
+                return True
+            cap = trips.cap_s(arrival, offset)
+            late = self.config.window_s
+            if cap is not None and offset - cap > late and self._clock.delay_s <= late:
+                # The samples kept so far were timed with an offset that took the link's delay for the clocks'
+                # difference (the last one was not capped): older than placed, they would block re-timed ones.
+                for series in (self._attitude, self._position, self._range, self._rel_alt):
+                    series.clear()
+                self._rejected["samples timed before a TIMESYNC answer showed them late: dropped"] += 1
+            return True
+
+    def round_trips(self) -> Tuple[int, Optional[float]]:
+        """(answers so far, the newest round trip in s or None)."""
+        with self._lock:
+            trips = self._clock.round_trips
+            return trips.answered, trips.round_trip_s
+
     # -- queries (pipeline thread) -----------------------------------------------------------------------
     def last_arrival_s(self) -> float:
         """When the newest accepted attitude arrived (local monotonic seconds; -inf if never)."""
@@ -368,11 +409,16 @@ class TelemetryBuffer:
             return TelemetryMatch(None, f"telemetry stale: last attitude {age:.2f} s ago")
         with self._lock:
             problem = self._estimator_problem(now_s)
+            link = self._clock.round_trips.problem(now_s)
+            delay_s = self._clock.delay_s
+        if link:
+            return TelemetryMatch(None, link)
         if problem.startswith("attitude"):
             return TelemetryMatch(None, f"the autopilot's estimator reports its {problem}")
         state = self.state_at(capture_time_s)
         if state is None:
-            return TelemetryMatch(None, f"no telemetry within {self.config.window_s:g} s of the capture time")
+            late = f" (TIMESYNC: telemetry arrives {delay_s:.1f} s after it was measured)" if delay_s > 0.1 else ""
+            return TelemetryMatch(None, f"no telemetry within {self.config.window_s:g} s of the capture time{late}")
         return TelemetryMatch(state)
 
 

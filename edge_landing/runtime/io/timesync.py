@@ -1,0 +1,126 @@
+"""Round trips to the autopilot (MAVLink TIMESYNC): how late its telemetry arrives, whatever its time stamps say.
+
+One-way time stamps cannot tell a link that delivers everything D seconds late from an autopilot clock D seconds
+behind this one: the clock offset (``clock_offset.py``) takes the fastest sample's delay for the offset, so
+telemetry delayed steadily from the start, or for longer than the offset's drift allowance, looks fresh. A
+TIMESYNC request answered with the autopilot's boot clock (ArduPilot: ``tc1`` = the time it received the
+request, in ns, ``ts1`` echoed; PX4 likewise) bounds the offset from both sides, with no assumption about the
+link: ``sent - tc1 <= offset <= arrival - tc1``. Its upper bound caps the offset telemetry is mapped with, and a
+round trip longer than ``max_round_trip_s`` means the link cannot deliver in time at all.
+
+Pure bookkeeping on the local monotonic clock: the link thread calls ``request`` and ``reply``, the telemetry
+buffer ``cap_s`` and ``problem``; both under the buffer's lock. Memory is bounded (``max_pending``, ``anchors``).
+"""
+from __future__ import annotations
+
+import math
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+from typing import Deque, Optional
+
+__all__ = ["Anchor", "RoundTrips", "TimeSyncConfig"]
+
+
+@dataclass(frozen=True)
+class TimeSyncConfig:
+    """Seconds, on the local monotonic clock."""
+
+    period_s: float = 1.0           # one request a second (ArduPilot and PX4 answer every one)
+    # A link whose round trip is longer than this cannot deliver telemetry, nor a target, within the ~1 s the
+    # autopilot accepts (LinkConfig.max_target_age_s): no telemetry is trusted until a round trip is short again.
+    max_round_trip_s: float = 1.0
+    # Targets wait this long after the first request for the first answer, so that a link delayed from the start
+    # sends nothing before it is measured; an autopilot that never answers is trusted as before (one-way stamps).
+    first_answer_wait_s: float = 1.0
+    pending_s: float = 30.0         # an answer to a request older than this is not matched (a slow answer is)
+    max_pending: int = 64
+    anchors: int = 8                # the offset bounds kept (the tightest cap of these is used)
+    # An answer that puts the autopilot's clock further from its telemetry's than this is on another clock (an
+    # autopilot whose TIMESYNC is not its boot clock) and is ignored; closer, it is a delay, and telemetry is late.
+    max_delay_s: float = 30.0
+    tolerance_s: float = 0.05       # time_boot_ms counts whole milliseconds; tc1 is in ns
+
+
+@dataclass(frozen=True)
+class Anchor:
+    """One answered request: the offset (local - remote clock, s) was within [low_s, high_s] at ``at_s``."""
+
+    low_s: float
+    high_s: float
+    at_s: float
+
+
+class RoundTrips:
+    """Pending TIMESYNC requests, the offset bounds their answers gave, and the newest round trip."""
+
+    def __init__(self, config: TimeSyncConfig = TimeSyncConfig(), max_drift: float = 0.1):
+        self.config = config
+        self.max_drift = max_drift      # how fast an anchor's bounds widen as it ages (the clocks may drift apart)
+        self._pending: OrderedDict[int, float] = OrderedDict()   # ts1 (ns) -> sent (local s)
+        self._anchors: Deque[Anchor] = deque(maxlen=config.anchors)
+        self._last_ts1 = 0
+        self.first_request_s: Optional[float] = None
+        self.round_trip_s: Optional[float] = None   # the newest answer's
+        self.answered = 0
+        self.unmatched = 0               # answers to no request of ours (or to one forgotten)
+        self.other_clock = 0             # answers ignored: their clock is not the telemetry's
+
+    def request(self, now_s: float) -> int:
+        """A new request's ``ts1`` (ns, unique and increasing), remembered with its send time."""
+        ts1 = max(int(now_s * 1e9), self._last_ts1 + 1)
+        self._last_ts1 = ts1
+        self._pending[ts1] = now_s
+        while self._pending and (len(self._pending) > self.config.max_pending
+                                 or now_s - next(iter(self._pending.values())) > self.config.pending_s):
+            self._pending.popitem(last=False)
+        if self.first_request_s is None:
+            self.first_request_s = now_s
+        return ts1
+
+    def reply(self, tc1_ns: int, ts1_ns: int, arrival_s: float) -> bool:
+        """An answer (``tc1`` the autopilot's clock, ns); False when it answers no request of ours."""
+        sent_s = self._pending.pop(int(ts1_ns), None)
+        if sent_s is None or not tc1_ns > 0 or arrival_s < sent_s:
+            self.unmatched += 1
+            return False
+        remote_s = tc1_ns / 1e9
+        self._anchors.append(Anchor(sent_s - remote_s, arrival_s - remote_s, arrival_s))
+        self.round_trip_s = arrival_s - sent_s
+        self.answered += 1
+        return True
+
+    def forget_clock(self) -> None:
+        """The autopilot rebooted: its clock restarted, so earlier bounds mean nothing."""
+        self._anchors.clear()
+
+    def cap_s(self, now_s: float, offset_s: float) -> Optional[float]:
+        """The tightest upper bound on the offset that the answers give (None without one that agrees with the
+        telemetry's clock: ``offset_s``, the fastest sample's delay, is itself an upper bound, never below a lower
+        one)."""
+        c, best = self.config, math.inf
+        for a in self._anchors:
+            slack = self.max_drift * max(now_s - a.at_s, 0.0)
+            if a.low_s - slack > offset_s + c.tolerance_s or a.high_s + slack < offset_s - c.max_delay_s:
+                continue
+            best = min(best, a.high_s + slack)
+        return None if best == math.inf else best
+
+    def note_other_clock(self, offset_s: float) -> bool:
+        """True (and counted) when the newest answer does not agree with the telemetry's clock at all."""
+        if not self._anchors:
+            return False
+        a = self._anchors[-1]
+        other = a.low_s > offset_s + self.config.tolerance_s or a.high_s < offset_s - self.config.max_delay_s
+        self.other_clock += other
+        return other
+
+    def problem(self, now_s: float) -> str:
+        """Why no telemetry may be trusted now ('' when the round trips allow it)."""
+        c = self.config
+        if self.round_trip_s is not None and self.round_trip_s > c.max_round_trip_s:
+            return (f"MAVLink round trip {self.round_trip_s:.2f} s (TIMESYNC): the link cannot deliver telemetry "
+                    f"in time (limit {c.max_round_trip_s:g} s)")
+        if (self.answered == 0 and self.first_request_s is not None
+                and now_s - self.first_request_s < c.first_answer_wait_s):
+            return "waiting for the autopilot's first TIMESYNC answer (how late its telemetry arrives)"
+        return ""
