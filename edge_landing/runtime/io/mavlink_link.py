@@ -18,16 +18,14 @@ import logging
 import math
 import threading
 import time
-from collections import Counter
-from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
-from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Target, VehicleState
 from edge_landing.runtime.core.target_frames import target_ned
+from edge_landing.runtime.io.link_config import Autopilot, LinkConfig, LinkCounts
 from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: the link's public helpers)
     NET_PREFIXES,
     UDP_PREFIXES,
@@ -48,65 +46,6 @@ TELEMETRY_MESSAGES = ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "LOC
 ESTIMATOR_MESSAGES = ("EKF_STATUS_REPORT", "ESTIMATOR_STATUS")   # ArduPilot's and PX4's, read when sent
 MAV_AUTOPILOT_INVALID = 8
 NOT_A_VEHICLE_TYPES = {6, 18, 26, 27, 30}  # GCS, onboard controller, gimbal, ADSB, camera
-
-
-class Autopilot(ChoiceEnum):
-    ARDUPILOT = "ardupilot"
-    PX4 = "px4"
-
-    @classmethod
-    def _label(cls) -> str:
-        return "autopilot"
-
-
-@dataclass(frozen=True)
-class LinkConfig:
-    url: str
-    autopilot: Autopilot = Autopilot.ARDUPILOT
-    system_id: int = 1             # companion computers share the vehicle's system id
-    component_id: int = 191        # MAV_COMP_ID_ONBOARD_COMPUTER
-    key_path: Optional[str] = None
-    target_system: Optional[int] = None  # take telemetry only from this system id (else: first autopilot heard)
-    heartbeat_period_s: float = 1.0
-    telemetry_rate_hz: float = 20.0
-    error_quiet_s: float = 2.0     # the link counts as up again after this long without a send error
-    heard_within_s: float = 1.5    # the autopilot counts as heard while a message came within this
-    max_target_age_s: float = 1.0  # an older target is dropped, never queued
-    max_unsent_bytes: int = 512    # TCP: a send queue longer than this means the peer is not reading
-    connect_timeout_s: float = 2.0
-    reconnect_min_s: float = 0.5
-    reconnect_max_s: float = 5.0
-
-    def __post_init__(self) -> None:
-        # MAVLink packs ids in one byte: a larger one would kill the link thread at its first heartbeat.
-        for name, value in (("system id", self.system_id), ("component id", self.component_id),
-                            ("target system", self.target_system)):
-            if value is not None and not 1 <= value <= 255:
-                raise InputError(f"MAVLink {name} must be between 1 and 255, got {value}")
-
-
-class LinkCounts:
-    """Thread-safe counters (the pipeline thread sends, the link thread receives)."""
-
-    KEYS = ("targets", "heartbeats", "statustext", "received", "send_errors", "reconnects",
-            "skipped_px4_no_position", "dropped_old_targets", "dropped_backed_up", "dropped_not_heard",
-            "other_senders", "before_autopilot", "bad_signature", "timesync_requests", "timesync_answers")
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._c: Counter[str] = Counter({k: 0 for k in self.KEYS})
-
-    def add(self, key: str, n: int = 1) -> None:
-        with self._lock:
-            self._c[key] += n
-
-    def __getitem__(self, key: str) -> int:
-        with self._lock:
-            return self._c[key]
-
-    def snapshot(self) -> Dict[str, int]:
-        with self._lock:
-            return dict(self._c)
 
 
 class MavlinkLink:

@@ -29,20 +29,20 @@ nearest one within ``window_s``; anything older is ignored rather than guessed.
 """
 from __future__ import annotations
 
-import bisect
 import logging
 import math
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass
-from typing import Deque, Dict, Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude
 from edge_landing.runtime.core.messages import VehicleState
 from edge_landing.runtime.io.clock_offset import ClockOffset
+from edge_landing.runtime.io.series import TimeSeries
 from edge_landing.runtime.io.timesync import TimeSyncConfig
 
 __all__ = ["ClockOffset", "TelemetryBuffer", "TelemetryConfig", "TelemetryMatch", "RANGEFINDER_DOWN"]
@@ -92,53 +92,6 @@ class TelemetryConfig:
     timesync: TimeSyncConfig = TimeSyncConfig()
 
 
-class _Series:
-    """Time-sorted samples of one quantity (times on the local monotonic clock)."""
-
-    def __init__(self, history_s: float, max_samples: int):
-        self.history_s = history_s
-        # Bounded by count as well as by time: a flood of samples within history_s cannot grow memory without end.
-        self.times: Deque[float] = deque(maxlen=max_samples)
-        self.values: Deque[np.ndarray] = deque(maxlen=max_samples)
-        self.last_arrival_s = -math.inf
-
-    def add(self, t_s: float, value: np.ndarray, arrival_s: float) -> bool:
-        """False (not kept) for a sample no later than the newest: out of order, duplicated, or a frozen clock
-        (new values under an old time would be matched to frames as if measured then)."""
-        if self.times and t_s <= self.times[-1]:
-            return False
-        self.times.append(t_s)
-        self.values.append(value)
-        self.last_arrival_s = max(self.last_arrival_s, arrival_s)
-        while self.times and self.times[0] < t_s - self.history_s:
-            self.times.popleft()
-            self.values.popleft()
-        return True
-
-    def clear(self) -> None:
-        self.times.clear()
-        self.values.clear()
-
-    def at(self, t_s: float, window_s: float, angles: bool = False) -> Optional[np.ndarray]:
-        if not self.times:
-            return None
-        times = list(self.times)
-        i = bisect.bisect_left(times, t_s)
-        before = i - 1 if i > 0 else None
-        after = i if i < len(times) else None
-        if before is not None and after is not None and times[after] - times[before] <= 2 * window_s:
-            t0, t1 = times[before], times[after]
-            v0, v1 = self.values[before], self.values[after]
-            w = 0.0 if t1 == t0 else (t_s - t0) / (t1 - t0)
-            delta = v1 - v0
-            if angles:  # interpolate the short way round (yaw wraps at ±pi)
-                delta = (delta + math.pi) % (2 * math.pi) - math.pi
-            out: np.ndarray = v0 + w * delta
-            return out
-        best = min((j for j in (before, after) if j is not None), key=lambda j: abs(times[j] - t_s))
-        return self.values[best] if abs(times[best] - t_s) <= window_s else None
-
-
 @dataclass(frozen=True)
 class TelemetryMatch:
     """The vehicle state at a capture time and, when it cannot be trusted, why (``reason`` empty = fresh)."""
@@ -161,10 +114,10 @@ class TelemetryBuffer:
     def __init__(self, config: TelemetryConfig = TelemetryConfig()):
         self.config = config
         self._lock = threading.Lock()
-        self._attitude = _Series(config.history_s, config.max_samples)
-        self._position = _Series(config.history_s, config.max_samples)
-        self._range = _Series(config.history_s, config.max_samples)
-        self._rel_alt = _Series(config.history_s, config.max_samples)
+        self._attitude = TimeSeries(config.history_s, config.max_samples)
+        self._position = TimeSeries(config.history_s, config.max_samples)
+        self._range = TimeSeries(config.history_s, config.max_samples)
+        self._rel_alt = TimeSeries(config.history_s, config.max_samples)
         self._clock = ClockOffset(config)
         self._rejected: Counter[str] = Counter()
         self.samples = 0
@@ -191,7 +144,7 @@ class TelemetryBuffer:
             return arrival_s
         return self._clock.map(remote_ms / 1000.0, arrival_s)
 
-    def _add(self, series: _Series, value: np.ndarray, remote_ms: Optional[float], arrival_s: Optional[float],
+    def _add(self, series: TimeSeries, value: np.ndarray, remote_ms: Optional[float], arrival_s: Optional[float],
              sample_s: Optional[float] = None) -> bool:
         """``sample_s``: the sample's local time when the caller knows it (else mapped from ``remote_ms``)."""
         arrival = time.monotonic() if arrival_s is None else arrival_s
@@ -216,7 +169,7 @@ class TelemetryBuffer:
             self.samples += 1
             return True
 
-    def _frame_moved(self, series: _Series, t_s: float, value: np.ndarray) -> Tuple[Tuple[_Series, ...], str]:
+    def _frame_moved(self, series: TimeSeries, t_s: float, value: np.ndarray) -> Tuple[Tuple[TimeSeries, ...], str]:
         """The series to empty and the counted reason when this sample shows that the autopilot's frame moved
         since the newest sample of ``series`` (a reboot, a position or a heading faster than flight), else
         ((), "")."""
