@@ -8,6 +8,9 @@ later samples are good but useless, e.g. an unknown height, only the committed s
 
     python -m edge_landing.benchmarks.probe_autopilot              # all probes, ~2 minutes
     python -m edge_landing.benchmarks.probe_autopilot --only silent,nan
+
+The "late-link" probe answers TIMESYNC as ArduPilot does (the others do not, as an autopilot that ignores it)
+and delivers its telemetry 1.5 s late from the end of the healthy phase.
 """
 from __future__ import annotations
 
@@ -42,6 +45,8 @@ class Peer:
     last_good_s: float = -math.inf
     targets: List[Tuple[float, Any]] = field(default_factory=list)
     read: bool = True
+    answers_timesync: bool = False   # as ArduPilot does (tc1 = its boot clock in ns); the other probes stay silent
+    late: List[Tuple[float, int]] = field(default_factory=list)   # (due, time_boot_ms) held back by the link
 
     def ms(self, rate: float = 1.0, offset_ms: float = 0.0) -> int:
         return int((time.monotonic() - self.t0) * 1000 * rate + offset_ms) + 1
@@ -95,6 +100,14 @@ def _frozen(p: Peer, t: float) -> None:
     p.read = False
 
 
+def _late_link(p: Peer, t: float) -> None:
+    """Every sample delivered 1.5 s after it was measured (a buffering radio); TIMESYNC answered at once."""
+    now = time.monotonic()
+    p.late.append((now + 1.5, p.ms()))
+    while p.late and p.late[0][0] <= now:
+        p.healthy(ms=p.late.pop(0)[1], good=False)
+
+
 PROBES: Dict[str, Tuple[Callable[[Peer, float], None], bool, bool]] = {
     # name: (bad phase, over TCP, later targets may only be the committed spot)
     "silent": (_silent, False, False),
@@ -104,7 +117,9 @@ PROBES: Dict[str, Tuple[Callable[[Peer, float], None], bool, bool]] = {
     "other-vehicle": (_other_vehicle, False, False),
     "unknown-height": (_unknown_height, False, True),
     "tcp-frozen": (_frozen, True, False),
+    "late-link": (_late_link, False, False),
 }
+ANSWERS_TIMESYNC = {"late-link"}
 
 
 def _free_port(kind: int) -> int:
@@ -136,7 +151,7 @@ def run_probe(name: str, video: str, model: str) -> Dict[str, Any]:
     port = _free_port(socket.SOCK_STREAM if tcp else socket.SOCK_DGRAM)
     conn = mavutil.mavlink_connection(f"{'tcpin' if tcp else 'udpin'}:127.0.0.1:{port}", source_system=1,
                                       source_component=1)
-    peer = Peer(conn, mavutil.mavlink, tcp)
+    peer = Peer(conn, mavutil.mavlink, tcp, answers_timesync=name in ANSWERS_TIMESYNC)
     stop = threading.Event()
 
     def loop() -> None:
@@ -152,6 +167,8 @@ def run_probe(name: str, video: str, model: str) -> Dict[str, Any]:
                     peer.heard_s = peer.heard_s or now
                     if msg.get_type() == "LANDING_TARGET":
                         peer.targets.append((now, msg))
+                    elif msg.get_type() == "TIMESYNC" and msg.tc1 == 0 and peer.answers_timesync:
+                        conn.mav.timesync_send(int((now - peer.t0) * 1e9) + 1_000_000, msg.ts1)
             else:
                 time.sleep(0.005)
             now = time.monotonic()
