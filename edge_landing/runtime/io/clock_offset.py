@@ -7,8 +7,9 @@ Unlike ArduPilot's, a sample more than 500 ms late is not moved forward, nor the
 keeps its own time, so telemetry held back and delivered in a burst is not matched to frames captured after it
 was measured. A sample stamped from the future by more than ``max_future_s`` is dropped, and so is one stamped
 ``reboot_jump_s`` before the last until the clock has stayed behind for a window (then the autopilot rebooted).
-When the autopilot answers TIMESYNC, the offset is capped by what its round trips allow (``timesync.py``), so a
-link that delays all telemetry steadily does not pass the delay off as an offset.
+When the autopilot answers TIMESYNC, samples are mapped with the offset kept within what its round trips allow
+(``timesync.py``): a link that delays all telemetry steadily does not pass the delay off as an offset, and a
+clock that runs slower than ``max_drift`` lets (a lagging simulator) is followed.
 """
 from __future__ import annotations
 
@@ -41,6 +42,7 @@ class ClockOffset:
         self.reboots = 0              # times the remote clock restarted (an autopilot reboot)
         self.round_trips = RoundTrips(config.timesync, config.max_drift)
         self.delay_s = 0.0            # how much earlier the round trips put the last sample than the offset did
+        self.last_diff_s: Optional[float] = None   # the last sample's arrival minus its stamp
 
     def reset(self) -> None:
         self.offset_s, self._future_since_s, self._behind_since_s = None, None, None
@@ -93,7 +95,13 @@ class ClockOffset:
             self.offset_s = min(self._window_min_s, self.offset_s + c.max_drift * elapsed_s)
             self._recent_minima.append(self._window_min_s)
             self._window_start_s, self._window_min_s = arrival_s, diff
-        # The offset is the fastest sample's delay, so an upper bound: a lower one from the round trips wins.
-        cap = self.round_trips.cap_s(arrival_s, self.offset_s)
-        self.delay_s = 0.0 if cap is None else max(self.offset_s - cap, 0.0)
-        return remote_s + self.offset_s - self.delay_s
+        self.last_diff_s = diff
+        # Kept within what the round trips allow: the windowed offset takes a steady delay for the clocks'
+        # difference (too high) and lags behind a clock that runs slow (too low). Never above this sample's delay.
+        bounds = self.round_trips.bounds_s(arrival_s, diff)
+        if bounds is None:
+            self.delay_s = 0.0
+            return remote_s + self.offset_s
+        used = min(max(self.offset_s, bounds[0]), bounds[1], diff)
+        self.delay_s = max(self.offset_s - used, 0.0)
+        return remote_s + used

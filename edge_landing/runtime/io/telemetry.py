@@ -297,15 +297,15 @@ class TelemetryBuffer:
             trips = self._clock.round_trips
             if not trips.reply(int(tc1_ns), int(ts1_ns), arrival):
                 return False
-            offset = self._clock.offset_s
-            if offset is None:
+            offset, diff = self._clock.offset_s, self._clock.last_diff_s
+            if offset is None or diff is None:
                 return True
-            if trips.note_other_clock(offset):
+            if trips.note_other_clock(arrival, diff):
                 self._rejected["TIMESYNC answer on another clock than the telemetry's (ignored)"] += 1
                 return True
-            cap = trips.cap_s(arrival, offset)
+            bounds = trips.bounds_s(arrival, diff)
             late = self.config.window_s
-            if cap is not None and offset - cap > late and self._clock.delay_s <= late:
+            if bounds is not None and offset - bounds[1] > late and self._clock.delay_s <= late:
                 # The samples kept so far were timed with an offset that took the link's delay for the clocks'
                 # difference (the last one was not capped): older than placed, they would block re-timed ones.
                 for series in (self._attitude, self._position, self._range, self._rel_alt):

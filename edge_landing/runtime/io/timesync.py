@@ -5,8 +5,10 @@ behind this one: the clock offset (``clock_offset.py``) takes the fastest sample
 telemetry delayed steadily from the start, or for longer than the offset's drift allowance, looks fresh. A
 TIMESYNC request answered with the autopilot's boot clock (ArduPilot: ``tc1`` = the time it received the
 request, in ns, ``ts1`` echoed; PX4 likewise) bounds the offset from both sides, with no assumption about the
-link: ``sent - tc1 <= offset <= arrival - tc1``. Its upper bound caps the offset telemetry is mapped with, and a
-round trip longer than ``max_round_trip_s`` means the link cannot deliver in time at all.
+link: ``sent - tc1 <= offset <= arrival - tc1``. Telemetry is mapped with an offset kept within those bounds: the upper
+one makes telemetry that arrives late steadily keep its real, old time; the lower one keeps a clock that runs
+slower than the windowed offset can follow (a lagging simulator) from making on-time telemetry look old. A round
+trip longer than ``max_round_trip_s`` means the link cannot deliver in time at all.
 
 Pure bookkeeping on the local monotonic clock: the link thread calls ``request`` and ``reply``, the telemetry
 buffer ``cap_s`` and ``problem``; both under the buffer's lock. Memory is bounded (``max_pending``, ``anchors``).
@@ -16,7 +18,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict, deque
 from dataclasses import dataclass
-from typing import Deque, Optional
+from typing import Deque, Optional, Tuple
 
 __all__ = ["Anchor", "RoundTrips", "TimeSyncConfig"]
 
@@ -25,7 +27,9 @@ __all__ = ["Anchor", "RoundTrips", "TimeSyncConfig"]
 class TimeSyncConfig:
     """Seconds, on the local monotonic clock."""
 
-    period_s: float = 1.0           # one request a second (ArduPilot and PX4 answer every one)
+    # Four requests a second (ArduPilot and PX4 answer every one; 28 bytes each way): between answers a slow clock's
+    # lower bound lags, so their spacing × how slow it runs must stay within the match window.
+    period_s: float = 0.25
     # A link whose round trip is longer than this cannot deliver telemetry, nor a target, within the ~1 s the
     # autopilot accepts (LinkConfig.max_target_age_s): no telemetry is trusted until a round trip is short again.
     max_round_trip_s: float = 1.0
@@ -34,11 +38,14 @@ class TimeSyncConfig:
     first_answer_wait_s: float = 1.0
     pending_s: float = 30.0         # an answer to a request older than this is not matched (a slow answer is)
     max_pending: int = 64
-    anchors: int = 8                # the offset bounds kept (the tightest cap of these is used)
+    anchors: int = 32               # the offset bounds kept (8 s of answers: rate_span_s fits)
     # An answer that puts the autopilot's clock further from its telemetry's than this is on another clock (an
     # autopilot whose TIMESYNC is not its boot clock) and is ignored; closer, it is a delay, and telemetry is late.
     max_delay_s: float = 30.0
     tolerance_s: float = 0.05       # time_boot_ms counts whole milliseconds; tc1 is in ns
+    # The autopilot's clock rate is read from two answers at least this far apart: its error is the two round
+    # trips over the span, so a long span keeps a slow link from passing for a slow clock.
+    rate_span_s: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -55,7 +62,7 @@ class RoundTrips:
 
     def __init__(self, config: TimeSyncConfig = TimeSyncConfig(), max_drift: float = 0.1):
         self.config = config
-        self.max_drift = max_drift      # how fast an anchor's bounds widen as it ages (the clocks may drift apart)
+        self.max_drift = max_drift      # how fast the clocks may drift apart without answers that show more
         self._pending: OrderedDict[int, float] = OrderedDict()   # ts1 (ns) -> sent (local s)
         self._anchors: Deque[Anchor] = deque(maxlen=config.anchors)
         self._last_ts1 = 0
@@ -93,24 +100,44 @@ class RoundTrips:
         """The autopilot rebooted: its clock restarted, so earlier bounds mean nothing."""
         self._anchors.clear()
 
-    def cap_s(self, now_s: float, offset_s: float) -> Optional[float]:
-        """The tightest upper bound on the offset that the answers give (None without one that agrees with the
-        telemetry's clock: ``offset_s``, the fastest sample's delay, is itself an upper bound, never below a lower
-        one)."""
-        c, best = self.config, math.inf
-        for a in self._anchors:
-            slack = self.max_drift * max(now_s - a.at_s, 0.0)
-            if a.low_s - slack > offset_s + c.tolerance_s or a.high_s + slack < offset_s - c.max_delay_s:
-                continue
-            best = min(best, a.high_s + slack)
-        return None if best == math.inf else best
+    def drift_bound(self) -> float:
+        """How fast the offset may grow (s/s): ``max_drift``, or as fast as two answers ``rate_span_s`` apart or more
+        allow (a simulator that lags behind real time: its clock, and its telemetry's, runs slow); at most 1 (a
+        stopped clock)."""
+        if len(self._anchors) < 2:
+            return self.max_drift
+        new = self._anchors[-1]
+        old = next((a for a in self._anchors if new.at_s - a.at_s >= self.config.rate_span_s), None)
+        if old is None:
+            return self.max_drift
+        fastest = (new.high_s - old.low_s) / (new.at_s - old.at_s)
+        return max(self.max_drift, min(fastest, 1.0))
 
-    def note_other_clock(self, offset_s: float) -> bool:
-        """True (and counted) when the newest answer does not agree with the telemetry's clock at all."""
+    def _agrees(self, a: Anchor, now_s: float, diff_s: float, drift: float) -> bool:
+        """Whether an answer is on the clock of a sample that arrived ``diff_s`` after its stamp (that delay is an
+        upper bound on the offset, so an answer whose lower bound is above it is on another clock, and so is one
+        whose upper bound is further below it than any delay a link could hold)."""
+        age = max(now_s - a.at_s, 0.0)
+        return (a.low_s - self.max_drift * age <= diff_s + self.config.tolerance_s
+                and a.high_s + drift * age >= diff_s - self.config.max_delay_s)
+
+    def bounds_s(self, now_s: float, diff_s: float) -> Optional[Tuple[float, float]]:
+        """The lowest and highest offset (s) the answers allow at ``now_s``, from those on the clock of a sample
+        that arrived ``diff_s`` after its stamp (None without one). Each answer's bounds widen as it ages: the upper
+        one as fast as ``drift_bound``, the lower one as fast as ``max_drift`` (an autopilot clock running fast)."""
+        low, high, drift = -math.inf, math.inf, self.drift_bound()
+        for a in self._anchors:
+            if self._agrees(a, now_s, diff_s, drift):
+                age = max(now_s - a.at_s, 0.0)
+                low, high = max(low, a.low_s - self.max_drift * age), min(high, a.high_s + drift * age)
+        return None if high == math.inf else (min(low, high), high)
+
+    def note_other_clock(self, now_s: float, diff_s: float) -> bool:
+        """True (and counted) when the newest answer is not on the clock of a sample that arrived ``diff_s`` after
+        its stamp."""
         if not self._anchors:
             return False
-        a = self._anchors[-1]
-        other = a.low_s > offset_s + self.config.tolerance_s or a.high_s < offset_s - self.config.max_delay_s
+        other = not self._agrees(self._anchors[-1], now_s, diff_s, self.drift_bound())
         self.other_clock += other
         return other
 
