@@ -100,36 +100,39 @@ class RoundTrips:
         """The autopilot rebooted: its clock restarted, so earlier bounds mean nothing."""
         self._anchors.clear()
 
-    def drift_bound(self) -> float:
-        """How fast the offset may grow (s/s): ``max_drift``, or as fast as two answers ``rate_span_s`` apart or more
-        allow (a simulator that lags behind real time: its clock, and its telemetry's, runs slow); at most 1 (a
-        stopped clock)."""
+    def drift_bounds(self) -> Tuple[float, float]:
+        """How fast the offset may shrink and grow (s/s, the first <= -``max_drift``, the second >= ``max_drift``):
+        as fast as two answers ``rate_span_s`` apart or more allow, beyond ``max_drift``: a simulator lagging behind
+        real time (its clock, and its telemetry's, runs slow: the offset grows, at most 1 s/s) or sped up (it
+        shrinks, at most 10 s/s)."""
+        d = self.max_drift
         if len(self._anchors) < 2:
-            return self.max_drift
+            return -d, d
         new = self._anchors[-1]
         old = next((a for a in self._anchors if new.at_s - a.at_s >= self.config.rate_span_s), None)
         if old is None:
-            return self.max_drift
-        fastest = (new.high_s - old.low_s) / (new.at_s - old.at_s)
-        return max(self.max_drift, min(fastest, 1.0))
+            return -d, d
+        span = new.at_s - old.at_s
+        slowest, fastest = (new.low_s - old.high_s) / span, (new.high_s - old.low_s) / span
+        return min(-d, max(slowest, -10.0)), max(d, min(fastest, 1.0))
 
-    def _agrees(self, a: Anchor, now_s: float, diff_s: float, drift: float) -> bool:
+    def _agrees(self, a: Anchor, now_s: float, diff_s: float, drift: Tuple[float, float]) -> bool:
         """Whether an answer is on the clock of a sample that arrived ``diff_s`` after its stamp (that delay is an
         upper bound on the offset, so an answer whose lower bound is above it is on another clock, and so is one
         whose upper bound is further below it than any delay a link could hold)."""
         age = max(now_s - a.at_s, 0.0)
-        return (a.low_s - self.max_drift * age <= diff_s + self.config.tolerance_s
-                and a.high_s + drift * age >= diff_s - self.config.max_delay_s)
+        return (a.low_s + drift[0] * age <= diff_s + self.config.tolerance_s
+                and a.high_s + drift[1] * age >= diff_s - self.config.max_delay_s)
 
     def bounds_s(self, now_s: float, diff_s: float) -> Optional[Tuple[float, float]]:
         """The lowest and highest offset (s) the answers allow at ``now_s``, from those on the clock of a sample
-        that arrived ``diff_s`` after its stamp (None without one). Each answer's bounds widen as it ages: the upper
-        one as fast as ``drift_bound``, the lower one as fast as ``max_drift`` (an autopilot clock running fast)."""
-        low, high, drift = -math.inf, math.inf, self.drift_bound()
+        that arrived ``diff_s`` after its stamp (None without one). Each answer's bounds widen as it ages, as fast as
+        ``drift_bounds`` allow."""
+        low, high, drift = -math.inf, math.inf, self.drift_bounds()
         for a in self._anchors:
             if self._agrees(a, now_s, diff_s, drift):
                 age = max(now_s - a.at_s, 0.0)
-                low, high = max(low, a.low_s - self.max_drift * age), min(high, a.high_s + drift * age)
+                low, high = max(low, a.low_s + drift[0] * age), min(high, a.high_s + drift[1] * age)
         return None if high == math.inf else (min(low, high), high)
 
     def note_other_clock(self, now_s: float, diff_s: float) -> bool:
@@ -137,7 +140,7 @@ class RoundTrips:
         its stamp."""
         if not self._anchors:
             return False
-        other = not self._agrees(self._anchors[-1], now_s, diff_s, self.drift_bound())
+        other = not self._agrees(self._anchors[-1], now_s, diff_s, self.drift_bounds())
         self.other_clock += other
         return other
 
