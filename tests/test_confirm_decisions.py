@@ -11,8 +11,8 @@ import pytest
 
 from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+from edge_landing.runtime.fusion.keyframes import Keyframe
 from edge_landing.runtime.fusion.motion import CameraPose, MotionConfig, MotionStage
-from edge_landing.runtime.fusion.motion import _Stored as Keyframe
 
 sim = pytest.importorskip("edge_landing.sim", reason="the sim extra (embreex) renders the test worlds")
 from edge_landing.benchmarks.landing_truth import TruthConfig, check_target  # noqa: E402

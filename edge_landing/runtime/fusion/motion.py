@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Deque, Optional
 
 import cv2
@@ -25,6 +25,7 @@ from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.fusion.baseline import detectable_heights_m, window_probes
 from edge_landing.runtime.fusion.image_checks import moved_as_posed, predicted_motion_px, textured
 from edge_landing.runtime.fusion.image_motion import ImagePose, estimate_translation, plane_prediction_sigma
+from edge_landing.runtime.fusion.keyframes import Keyframe, ground_window, warp_window
 from edge_landing.runtime.fusion.motion_config import (
     POSE_IMAGE,
     POSE_TELEMETRY,
@@ -49,24 +50,6 @@ __all__ = ["POSE_IMAGE", "POSE_TELEMETRY", "CameraPose", "DisPreset", "MotionCon
            "parallax_height", "plane_homography"]
 
 
-def _warp_window(src: np.ndarray, hom: np.ndarray, window: tuple[slice, slice]) -> np.ndarray:
-    """``src`` (a keyframe, grey) resampled onto the current frame's ``window`` by ``hom`` (current frame pixel ->
-    ``src`` pixel): only the window is warped, its pixel (x, y) being (x + c0, y + r0) of the frame."""
-    rs, cs = window
-    shift = np.array([[1.0, 0.0, cs.start], [0.0, 1.0, rs.start], [0.0, 0.0, 1.0]])
-    out: np.ndarray = cv2.warpPerspective(src, hom @ shift, (cs.stop - cs.start, rs.stop - rs.start),
-                                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
-    return out
-
-
-@dataclass(frozen=True)
-class _Stored:
-    time_s: float
-    grey: np.ndarray
-    pose: CameraPose
-    source: str = POSE_TELEMETRY
-
-
 class MotionStage:
     """Keeps a bounded ring of grey keyframes with poses; ``update`` measures heights against the best one."""
 
@@ -85,7 +68,7 @@ class MotionStage:
         if i.dist:   # the plane model is pinhole: undistort frames once into the same camera without distortion
             self._undistort = cv2.initUndistortRectifyMap(self.k_cv, np.asarray(i.dist, np.float64), None,
                                                           self.k_cv, (w, h), cv2.CV_16SC2)
-        self._history: Deque[_Stored] = deque()
+        self._history: Deque[Keyframe] = deque()
         self._dis = config.dis_preset.create()
         self._dis.setVariationalRefinementIterations(config.dis_refine_iterations)
         self._dis.setFinestScale(config.dis_finest_scale)
@@ -195,7 +178,7 @@ class MotionStage:
             result = self._measure(grey, pose, ref, time_s, window)
         self.position_ned_m = pose.position_ned_m.copy()
         # An anchored image position is in the telemetry's frame: a position dropout, not a new frame.
-        self._store(_Stored(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source))
+        self._store(Keyframe(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source))
         self.last = result
         return result
 
@@ -206,7 +189,7 @@ class MotionStage:
         newest = self._history[-1]
         rs, cs = window
         hom = plane_homography(self.k_cv, pose, newest.pose)[0]
-        return moved_as_posed(np.ascontiguousarray(grey[rs, cs]), newest.grey[rs, cs], _warp_window(newest.grey, hom, window),
+        return moved_as_posed(np.ascontiguousarray(grey[rs, cs]), newest.grey[rs, cs], warp_window(newest.grey, hom, window),
                               predicted_motion_px(hom, rs, cs), self.config.checks)
 
     def _chain(self, grey: np.ndarray, pose: CameraPose, time_s: float) -> CameraPose:
@@ -233,7 +216,7 @@ class MotionStage:
         self.odometry_epoch += 1
         return replace(pose, position_ned_m=np.zeros(3))
 
-    def _image_pose(self, grey: np.ndarray, pose: CameraPose, ref: _Stored,
+    def _image_pose(self, grey: np.ndarray, pose: CameraPose, ref: Keyframe,
                     prior: Optional[np.ndarray] = None) -> tuple[CameraPose, ImagePose]:
         """``pose`` placed at the keyframe's position + the images' translation (unchanged when it fails)."""
         if prior is None and np.all(np.isfinite(pose.position_ned_m)):
@@ -245,7 +228,7 @@ class MotionStage:
             return pose, est
         return replace(pose, position_ned_m=ref.pose.position_ned_m + est.delta_ned_m), est
 
-    def _store(self, item: _Stored) -> None:
+    def _store(self, item: Keyframe) -> None:
         h = self._history
         # Keyframes at least history_s / max_frames apart: the newest frame replaces the previous one when
         # that one is too close to its predecessor (the ring always holds the latest frame).
@@ -257,13 +240,13 @@ class MotionStage:
             h.popleft()
 
     def _choose_window(self, pose: CameraPose, focus: Optional[np.ndarray]
-                       ) -> tuple[Optional[tuple[slice, slice]], Optional[_Stored]]:
+                       ) -> tuple[Optional[tuple[slice, slice]], Optional[Keyframe]]:
         """The window and keyframe for this frame: among the candidate spots, the one whose best keyframe detects
         the smallest height (the first unless another is ``focus_preference`` times better). The network's spot
         often lies where the vehicle is flying to, near the epipole, where no baseline gives parallax: a
         window there measures nothing a confirmation can use, while other landable ground would confirm."""
         foci: list[Optional[np.ndarray]] = [None] if focus is None else list(np.atleast_2d(focus))
-        best: tuple[Optional[tuple[slice, slice]], Optional[_Stored]] = (None, None)
+        best: tuple[Optional[tuple[slice, slice]], Optional[Keyframe]] = (None, None)
         best_det, reason = math.inf, ""
         for k, spot in enumerate(foci):
             window = self._window(pose, spot)
@@ -279,42 +262,13 @@ class MotionStage:
         return best
 
     def _window(self, pose: CameraPose, focus: Optional[np.ndarray]) -> Optional[tuple[slice, slice]]:
-        """Rows and columns DIS runs on: the ground band within max_range_m, cropped to window_hw."""
-        h, w = self.size_hw
-        n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
-        # Rows get nearer going down (camera below the horizon): test every row at five columns at once.
-        xs = self._norm[0][0][np.linspace(0, w - 1, 5).astype(int)][None, :]
-        ys = self._norm[1][:, :1]
-        nx = n[0] * xs + n[1] * ys + n[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam = np.where(nx > 0, pose.agl_m / nx, np.nan)
-        r = pose.r_nc
-        pn = (r[0, 0] * xs + r[0, 1] * ys + r[0, 2]) * lam
-        pe = (r[1, 0] * xs + r[1, 1] * ys + r[1, 2]) * lam
-        with np.errstate(invalid="ignore"):
-            rows = np.flatnonzero(np.any(np.hypot(pn, pe) <= self.config.max_range_m, axis=1))
-        if rows.size == 0 or h - int(rows[0]) < 16:
-            return None
-        row0 = max(0, int(rows[0]) - 8)                      # DIS patches need a little context
-        wh, ww = min(self.config.window_hw[0], h - row0), min(self.config.window_hw[1], w)
-        # No candidate spot: scan the ground band, one window position per frame pair (3 columns × 2 rows), so
-        # that the evidence (kept for tens of seconds) covers where a spot may be proposed later, instead of
-        # always the same patch below the vehicle.
-        k = self._scan
-        if focus is None:
-            self._scan = (k + 1) % 6
-        cu = (0.5 + (k % 3 - 1) * 0.34) * w
-        cv = h - 0.5 * wh if k < 3 else row0 + 0.5 * wh
-        if focus is not None:
-            cam = pose.r_nc.T @ (np.asarray(focus, np.float64) - pose.position_ned_m)
-            if cam[2] > 0:
-                cu, cv = self.k_cv[0, 0] * cam[0] / cam[2] + self.k_cv[0, 2], \
-                    self.k_cv[1, 1] * cam[1] / cam[2] + self.k_cv[1, 2]
-        c0 = int(np.clip(round(cu - ww / 2), 0, w - ww))
-        r0 = int(np.clip(round(cv - wh / 2), row0, h - wh))
-        return slice(r0, r0 + wh), slice(c0, c0 + ww)
+        """Rows and columns DIS runs on (keyframes.ground_window); without a candidate spot, the scan moves on."""
+        window = ground_window(pose, focus, self._norm, self.size_hw, self.k_cv, self.config, self._scan)
+        if focus is None and window is not None:
+            self._scan = (self._scan + 1) % 6
+        return window
 
-    def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice]) -> tuple[Optional[_Stored], float]:
+    def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice]) -> tuple[Optional[Keyframe], float]:
         """The newest keyframe that detects ``enough_detect_m`` with margin, else the most sensitive one.
 
         All stored frames are scored at once at a few probe pixels of the window: the smallest height they
@@ -336,7 +290,7 @@ class MotionStage:
         pick = int(enough[-1]) if enough.size else int(np.argmin(det))
         return items[pick], float(det[pick])
 
-    def _measure(self, grey: np.ndarray, pose: CameraPose, ref: _Stored, time_s: float,
+    def _measure(self, grey: np.ndarray, pose: CameraPose, ref: Keyframe, time_s: float,
                  window: tuple[slice, slice], image_pose: Optional[ImagePose] = None) -> Optional[ParallaxResult]:
         cfg = self.config
         rs, cs = window
@@ -345,7 +299,7 @@ class MotionStage:
         if sweep.raised:
             pose = replace(pose, agl_m=sweep.level_m)
         hom, rot, t, n, d = plane_homography(self.k_cv, pose, ref.pose)
-        wrp = _warp_window(ref.grey, hom, window)
+        wrp = warp_window(ref.grey, hom, window)
         cur = np.ascontiguousarray(grey[rs, cs])
         # No texture, or images that did not move as the poses did, would read as level ground (image_checks).
         tex = textured(cur, cfg.checks)

@@ -1,0 +1,70 @@
+"""The motion stage's keyframes and where it looks (ARCHITECTURE.md §11): a stored frame with its pose, the window
+of the ground band DIS runs on, and a keyframe resampled onto that window. Pure numpy/OpenCV, no state."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from edge_landing.runtime.fusion.motion_config import POSE_TELEMETRY, MotionConfig
+from edge_landing.runtime.fusion.parallax import CameraPose
+
+__all__ = ["Keyframe", "ground_window", "warp_window"]
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """A grey frame at the stage's size, its time (s, local clock) and camera pose, and where the pose came from."""
+
+    time_s: float
+    grey: np.ndarray
+    pose: CameraPose
+    source: str = POSE_TELEMETRY
+
+
+def warp_window(src: np.ndarray, hom: np.ndarray, window: tuple[slice, slice]) -> np.ndarray:
+    """``src`` (a keyframe, grey) resampled onto the current frame's ``window`` by ``hom`` (current frame pixel ->
+    ``src`` pixel): only the window is warped, its pixel (x, y) being (x + c0, y + r0) of the frame."""
+    rs, cs = window
+    shift = np.array([[1.0, 0.0, cs.start], [0.0, 1.0, rs.start], [0.0, 0.0, 1.0]])
+    out: np.ndarray = cv2.warpPerspective(src, hom @ shift, (cs.stop - cs.start, rs.stop - rs.start),
+                                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    return out
+
+
+def ground_window(pose: CameraPose, focus: Optional[np.ndarray], norm: np.ndarray, size_hw: tuple[int, int],
+                  k_cv: np.ndarray, config: MotionConfig, scan: int) -> Optional[tuple[slice, slice]]:
+    """Rows and columns DIS runs on: the ground band within ``max_range_m``, cropped to ``window_hw``, centred on
+    ``focus`` (a candidate spot, local NED) when it is in front of the camera, else at scan position ``scan``
+    (0-5). ``norm``: the stage's normalised pixel coordinates (2×H×W); None when no ground is in range."""
+    h, w = size_hw
+    n = pose.r_nc.T @ np.array([0.0, 0.0, 1.0])
+    # Rows get nearer going down (camera below the horizon): test every row at five columns at once.
+    xs = norm[0][0][np.linspace(0, w - 1, 5).astype(int)][None, :]
+    ys = norm[1][:, :1]
+    nx = n[0] * xs + n[1] * ys + n[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.where(nx > 0, pose.agl_m / nx, np.nan)
+    r = pose.r_nc
+    pn = (r[0, 0] * xs + r[0, 1] * ys + r[0, 2]) * lam
+    pe = (r[1, 0] * xs + r[1, 1] * ys + r[1, 2]) * lam
+    with np.errstate(invalid="ignore"):
+        rows = np.flatnonzero(np.any(np.hypot(pn, pe) <= config.max_range_m, axis=1))
+    if rows.size == 0 or h - int(rows[0]) < 16:
+        return None
+    row0 = max(0, int(rows[0]) - 8)                      # DIS patches need a little context
+    wh, ww = min(config.window_hw[0], h - row0), min(config.window_hw[1], w)
+    # No candidate spot: scan the ground band, one window position per frame pair (3 columns × 2 rows), so that
+    # the evidence (kept for tens of seconds) covers where a spot may be proposed later, instead of always the
+    # same patch below the vehicle.
+    cu = (0.5 + (scan % 3 - 1) * 0.34) * w
+    cv = h - 0.5 * wh if scan < 3 else row0 + 0.5 * wh
+    if focus is not None:
+        cam = pose.r_nc.T @ (np.asarray(focus, np.float64) - pose.position_ned_m)
+        if cam[2] > 0:
+            cu, cv = k_cv[0, 0] * cam[0] / cam[2] + k_cv[0, 2], k_cv[1, 1] * cam[1] / cam[2] + k_cv[1, 2]
+    c0 = int(np.clip(round(cu - ww / 2), 0, w - ww))
+    r0 = int(np.clip(round(cv - wh / 2), row0, h - wh))
+    return slice(r0, r0 + wh), slice(c0, c0 + ww)
