@@ -120,6 +120,8 @@ def test_a_long_round_trip_refuses_telemetry_until_a_short_one():
     first = trips.request(10.0)
     assert trips.problem(10.5).startswith("waiting")
     assert trips.reply(int(5e9), first, 10.01) and trips.problem(10.5) == ""
+    assert not trips.reply(int(5e9), first, 10.02)                # the same answer again: matched once only
+    assert not trips.reply(int(5e9), trips.request(10.6), 10.59)  # "answered" before it was asked
     slow = trips.request(11.0)
     assert trips.reply(int(6.5e9), slow, 11.0 + c.max_round_trip_s + 0.5)
     assert "round trip 1.50 s" in trips.problem(12.6)
@@ -180,9 +182,13 @@ def test_edge_run_answers_timesync_and_sends_targets_when_the_link_is_healthy(as
         if not fake.__dict__.get("asked"):
             fake.__dict__["asked"] = True
             fake.conn.mav.timesync_send(0, 123456789)            # the autopilot's own request
+            for k in range(200):                                 # then a flood of them
+                fake.conn.mav.timesync_send(0, 1000 + k)
         answers.extend(m for _, m in fake.of_type("TIMESYNC") if m.tc1 != 0 and m.ts1 == 123456789)
 
     fake, _, _ = run_against(assets, tmp_path, script, 3.5)
     assert len(fake.targets_between(1.5, 1e9)) >= 5
     assert answers, "edge-run did not answer the autopilot's TIMESYNC request"
+    flood = [m for _, m in fake.of_type("TIMESYNC") if m.tc1 != 0 and 1000 <= m.ts1 < 1200]
+    assert len(flood) <= 5                                       # answered at most 20 times a second
 

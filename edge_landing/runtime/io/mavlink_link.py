@@ -71,6 +71,7 @@ class MavlinkLink:
         self._last_request_s = -math.inf
         self._next_timesync_s = 0.0
         self._timesync_said = False
+        self._last_answer_s = -math.inf
 
     # -- life cycle -----------------------------------------------------------------------------------
     def start(self) -> MavlinkLink:
@@ -304,7 +305,7 @@ class MavlinkLink:
             return
         self._next_timesync_s = now + period
         answered, round_trip = self.telemetry.round_trips()
-        if not self._timesync_said and (answered or self.counts["timesync_requests"] >= 5):
+        if not self._timesync_said and (answered or self.counts["timesync_requests"] * period >= 3.0):
             self._timesync_said = True
             if answered:
                 log.info("the autopilot answers TIMESYNC (round trip %.0f ms): telemetry that arrives late is "
@@ -323,7 +324,9 @@ class MavlinkLink:
             if self.telemetry.timesync_reply(int(msg.tc1), int(msg.ts1), arrival):
                 self.counts.add("timesync_answers")
             return
-        self._send(self._mavutil.mavlink.MAVLink_timesync_message(int(arrival * 1e9), int(msg.ts1)))
+        if arrival - self._last_answer_s >= 0.05:      # a flood of requests gets at most 20 answers a second
+            self._last_answer_s = arrival
+            self._send(self._mavutil.mavlink.MAVLink_timesync_message(int(arrival * 1e9), int(msg.ts1)))
 
     def _choose_peer(self, msg: Any, sender: Tuple[int, int]) -> None:
         """The first autopilot-type HEARTBEAT (of ``target_system`` when given) names the one autopilot."""
