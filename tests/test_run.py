@@ -97,13 +97,18 @@ def test_truncated_video_ends_cleanly(assets, tmp_path, capsys):
     (["--mav-compid", "0"], "--mav-compid"),
     (["--log", "/proc/version"], "cannot write --log /proc/version"),
     (["--camera", "sim:bogusstyle"], "unsupported world style 'bogusstyle'"),
+    (["--mav", "udpout:127.0.0.1:99999"], "port 99999 is not in 1-65535"),
+    (["--mav", "udpout:127.0.0.1:9", "--mav-key", "/nonexistent/key"], "signing key file /nonexistent/key"),
 ])
 def test_bad_input_is_one_line_and_exit_2(assets, args, message, capsys):
     argv = ["--camera", assets["video"], "--model", assets["model"]]
     argv += args
     assert main(argv) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
+    if "--mav" in args or "--mav-key" in args:       # refused before the model is chosen and loaded
+        assert "edge-run: model" not in captured.out, captured.out
 
 
 def test_model_without_contract_is_one_line(assets, tmp_path, capsys):

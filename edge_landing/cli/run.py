@@ -34,7 +34,7 @@ from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame
 from edge_landing.runtime.io.grabber import Grabber
-from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink
+from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink, check_url, load_signing_key
 from edge_landing.runtime.io.sources import SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.perception.backend import RuntimeRequest
@@ -124,6 +124,10 @@ class RunConfig:
         if self.record and Path(self.record).suffix.lower() not in RECORD_SUFFIXES:
             raise InputError(f"--record {self.record}: the overlay video needs one of the suffixes "
                              f"{', '.join(RECORD_SUFFIXES)}")
+        if self.mav:   # before the model is chosen and loaded: a bad address is the one line said
+            check_url(self.mav)
+            if self.mav_key:
+                load_signing_key(self.mav_key)
         if self.mav and not self.altitude_scale and not self.calibration:
             raise InputError("--no-altitude-scale with --mav needs --calibration: without either there is no metric "
                              "depth scale, so no target would ever be sent")
