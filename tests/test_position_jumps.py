@@ -63,7 +63,7 @@ def test_a_reboot_starts_a_new_epoch_even_without_a_jump():
         buf.add_position(1.5, 2.0, -30.0, 2_000 + 50 * i, arrival_s=51.05 + 0.05 * i)
     state = buf.newest_state()
     assert state.position_epoch == 1 and state.position_ned_m[0] == pytest.approx(1.5)
-    assert buf.rejected()["autopilot rebooted (its clock restarted): earlier positions dropped"] == 1
+    assert buf.rejected()["autopilot rebooted (its clock restarted): every earlier sample dropped"] == 1
 
 
 def test_a_committed_spot_is_dropped_when_the_frame_moves():

@@ -181,7 +181,7 @@ class TelemetryBuffer:
             self._reboots = self._clock.reboots
             log.warning("the autopilot's clock restarted (a reboot): " + _STARTS_OVER)
             return (self._position, self._attitude, self._range, self._rel_alt), \
-                "autopilot rebooted (its clock restarted): earlier positions dropped"
+                "autopilot rebooted (its clock restarted): every earlier sample dropped"
         if series not in (self._position, self._attitude) or not series.times or t_s <= series.times[-1]:
             return (), ""
         dt = t_s - series.times[-1]
