@@ -3,6 +3,10 @@ RoundTrips and TelemetryBuffer on a simulated clock, and edge-run against the fa
 answers TIMESYNC as ArduPilot does; real pymavlink on both ends)."""
 from __future__ import annotations
 
+import math
+from typing import Optional, Tuple
+
+import numpy as np
 import pytest
 
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
@@ -103,6 +107,53 @@ def test_late_bursts_stay_old_when_the_autopilot_answers(clock_rate):
                 feed(buf, b, now)
         fresh_late += i * dt >= 6.5 and sum(buf.lookup(now - lag, now).fresh for lag in (0.0, 0.05, 0.15))
     assert fresh_late == 0
+
+
+def fly_clocks(seconds: float, rate_at=lambda t: 1.0, answers_rate: Optional[float] = None,
+               reboot_at_s: Optional[float] = None) -> Tuple[list, TelemetryBuffer]:
+    """On-time telemetry from an autopilot clock running at ``rate_at(t)`` × real time; its TIMESYNC answers on the
+    same clock, or (a test double's inconsistency) on one running at ``answers_rate``, or one that does not restart
+    when the telemetry's does at ``reboot_at_s``. Returns (time, fresh) per frame captured now, and the buffer."""
+    buf, dt = TelemetryBuffer(), 1.0 / RATE_HZ
+    every = max(int(round(TimeSyncConfig().period_s * RATE_HZ)), 1)
+    boot = answers_clock = BOOT0_S
+    out = []
+    for i in range(int(seconds * RATE_HZ)):
+        t, now = i * dt, T0_S + i * dt
+        boot += dt * rate_at(t)
+        answers_clock += dt * (rate_at(t) if answers_rate is None else answers_rate)
+        if reboot_at_s is not None and abs(t - reboot_at_s) < dt / 2:
+            boot = 0.5
+        if i % every == 0:
+            buf.timesync_reply(int((answers_clock + 0.005) * 1e9), buf.timesync_request(now), now + 0.01)
+        feed(buf, boot - 0.01, now)
+        out.append((t, buf.lookup(now, now).fresh))
+    return out, buf
+
+
+@pytest.mark.parametrize("name, rate_at", [("lag that comes and goes", lambda t: 0.6 if int(t) % 6 < 3 else 1.0),
+                                           ("lag swinging 0.4-1.0", lambda t: 0.7 + 0.3 * math.sin(t)),
+                                           ("lag growing to half speed", lambda t: max(0.5, 1.0 - 0.05 * t))])
+def test_a_simulator_s_lag_that_changes_is_followed(name, rate_at):
+    out, buf = fly_clocks(30.0, rate_at)
+    assert np.mean([f for t, f in out if t >= 1.0]) > 0.97, name
+    assert buf._clock.round_trips.agreement.why == ""          # one clock: the answers stay trusted
+
+
+@pytest.mark.parametrize("answers_rate", [1.0, 1.05])
+def test_a_double_whose_answers_run_on_another_clock_is_not_believed(answers_rate):
+    """A test double whose telemetry stamps run 2 % slow (or 5 % fast) against its TIMESYNC answers' clock: the gap
+    between them drifts steadily, which one clock cannot do; its answers are ignored and its telemetry is timed by
+    its stamps alone, as before round trips (its drift is within max_drift)."""
+    out, buf = fly_clocks(30.0, lambda t: 0.98 if answers_rate == 1.0 else 1.0, answers_rate=answers_rate)
+    assert np.mean([f for t, f in out if t >= 1.0]) > 0.97
+    assert "drift" in buf._clock.round_trips.agreement.why
+
+
+def test_a_double_whose_answers_do_not_restart_with_its_telemetry_is_not_believed():
+    out, buf = fly_clocks(20.0, reboot_at_s=6.0)
+    assert "did not restart" in buf._clock.round_trips.agreement.why
+    assert np.mean([f for t, f in out if t >= 10.0]) > 0.97
 
 
 def test_an_answer_on_another_clock_is_ignored_not_trusted():

@@ -31,6 +31,7 @@ class ClockOffset:
         self.offset_s: Optional[float] = None
         self._window_start_s = 0.0
         self._window_min_s = math.inf
+        self._recent: Deque[tuple[float, float]] = deque(maxlen=1024)   # (arrival, delay), two TIMESYNC periods
         self._last_remote_s = -math.inf
         self._future_since_s: Optional[float] = None
         self._behind_since_s: Optional[float] = None
@@ -44,9 +45,14 @@ class ClockOffset:
         self.delay_s = 0.0            # how much earlier the round trips put the last sample than the offset did
         self.last_diff_s: Optional[float] = None   # the last sample's arrival minus its stamp
 
+    def recent_delays(self) -> list[tuple[float, float]]:
+        """(arrival, arrival minus stamp) of the samples of the last two TIMESYNC periods."""
+        return list(self._recent)
+
     def reset(self) -> None:
         self.offset_s, self._future_since_s, self._behind_since_s = None, None, None
         self._recent_minima.clear()
+        self._recent.clear()
         self.round_trips.forget_clock()
 
     def _restarted(self, remote_s: float, arrival_s: float) -> bool:
@@ -88,6 +94,9 @@ class ClockOffset:
         self._last_remote_s = remote_s
         self.offset_s = min(self.offset_s, diff)           # a faster sample: adopt at once
         self._window_min_s = min(self._window_min_s, diff)
+        self._recent.append((arrival_s, diff))
+        while self._recent and arrival_s - self._recent[0][0] > 2 * c.timesync.period_s:
+            self._recent.popleft()
         elapsed_s = arrival_s - self._window_start_s
         if elapsed_s >= c.clock_window_s:
             # Forget older minima, so a drifting clock is followed; but only as fast as clocks drift: a window

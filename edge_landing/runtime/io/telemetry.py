@@ -124,6 +124,7 @@ class TelemetryBuffer:
         self._position_epoch = 0
         self._reboots = 0
         self._estimator: Optional[Tuple[float, int, bool]] = None   # (arrival, flags, GPS glitch) of the newest
+        self._said_disagree = False
 
     # -- intake (link thread) ----------------------------------------------------------------------------
     def rejected(self) -> Dict[str, int]:
@@ -300,8 +301,14 @@ class TelemetryBuffer:
             offset, diff = self._clock.offset_s, self._clock.last_diff_s
             if offset is None or diff is None:
                 return True
-            if trips.note_other_clock(arrival, diff):
+            trips.note_gap(self._clock.recent_delays())
+            disagree = trips.agreement.why
+            if disagree or trips.note_other_clock(arrival, diff):
                 self._rejected["TIMESYNC answer on another clock than the telemetry's (ignored)"] += 1
+                if disagree and not self._said_disagree:
+                    self._said_disagree = True
+                    log.warning("the autopilot's TIMESYNC answers are ignored from now on: %s (a real autopilot "
+                                "stamps both with one clock); telemetry is timed by its own stamps only", disagree)
                 return True
             bounds = trips.bounds_s(arrival, diff)
             late = self.config.window_s

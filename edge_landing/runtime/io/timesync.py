@@ -18,9 +18,9 @@ from __future__ import annotations
 import math
 from collections import OrderedDict, deque
 from dataclasses import dataclass
-from typing import Deque, Optional, Tuple
+from typing import Deque, Iterable, Optional, Tuple
 
-__all__ = ["Anchor", "RoundTrips", "TimeSyncConfig"]
+__all__ = ["Anchor", "ClockAgreement", "RoundTrips", "TimeSyncConfig"]
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,12 @@ class TimeSyncConfig:
     # The autopilot's clock rate is read from two answers at least this far apart: its error is the two round
     # trips over the span, so a long span keeps a slow link from passing for a slow clock.
     rate_span_s: float = 2.0
+    # The gap between the telemetry's clock and the answers' (ClockAgreement): drifting faster than
+    # ``max_gap_drift`` (s/s) over four ``drift_bin_s`` bins, or jumping ``max_gap_jump_s`` across a reboot, it is
+    # another clock, and the answers are ignored.
+    max_gap_drift: float = 0.01
+    drift_bin_s: float = 1.0
+    max_gap_jump_s: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -55,6 +61,53 @@ class Anchor:
     low_s: float
     high_s: float
     at_s: float
+
+
+class ClockAgreement:
+    """Whether the answers' clock is the telemetry's (ArduPilot's and PX4's are: both are the boot clock).
+
+    The gap between them (the fastest recent sample's delay minus the answers' offset) is steady for one clock,
+    whatever the link; it steps when a delay starts or ends. It drifts steadily, at the same rate second after
+    second, only when the two are different clocks, and it jumps at a reboot when the answers' clock did not
+    restart with the telemetry's (a test double's, a router's). Then the answers are ignored from then on."""
+
+    def __init__(self, config: TimeSyncConfig):
+        self.config = config
+        self._gaps: Deque[Tuple[float, float, int]] = deque(maxlen=64)   # (local time, gap s, epoch)
+        self._epoch = 0
+        self.why = ""
+
+    def new_epoch(self) -> None:
+        self._epoch += 1
+
+    def add(self, at_s: float, gap_s: float) -> None:
+        c = self.config
+        if self.why:
+            return
+        if self._gaps and self._gaps[-1][2] != self._epoch and abs(gap_s - self._gaps[-1][1]) > c.max_gap_jump_s:
+            self.why = (f"its TIMESYNC clock did not restart with its telemetry's at a reboot (moved "
+                        f"{gap_s - self._gaps[-1][1]:+.1f} s against it)")
+        self._gaps.append((at_s, gap_s, self._epoch))
+        self._judge_drift(at_s)
+
+    def _judge_drift(self, now_s: float) -> None:
+        """Four consecutive ``drift_bin_s`` bins whose mean gaps all move the same way by similar amounts: a drift,
+        not a step (a delay that starts moves one or two bins' means, not three differences)."""
+        c = self.config
+        bins: list[list[float]] = [[], [], [], []]
+        for t, g, e in self._gaps:
+            k = int((now_s - t) // c.drift_bin_s)
+            if e == self._epoch and 0 <= k < 4:
+                bins[3 - k].append(g)
+        if any(len(b) < 2 for b in bins):
+            return
+        means = [sum(b) / len(b) for b in bins]
+        steps = [b - a for a, b in zip(means, means[1:])]
+        least, most = min(abs(d) for d in steps), max(abs(d) for d in steps)
+        same_way = all(d > 0 for d in steps) or all(d < 0 for d in steps)
+        if same_way and least > c.max_gap_drift * c.drift_bin_s and most <= 3.0 * least:
+            rate = sum(steps) / (3.0 * c.drift_bin_s)
+            self.why = f"its TIMESYNC clock and its telemetry's drift {100 * rate:+.1f} % apart"
 
 
 class RoundTrips:
@@ -71,6 +124,7 @@ class RoundTrips:
         self.answered = 0
         self.unmatched = 0               # answers to no request of ours (or to one forgotten)
         self.other_clock = 0             # answers ignored: their clock is not the telemetry's
+        self.agreement = ClockAgreement(config)
 
     def request(self, now_s: float) -> int:
         """A new request's ``ts1`` (ns, unique and increasing), remembered with its send time."""
@@ -99,6 +153,20 @@ class RoundTrips:
     def forget_clock(self) -> None:
         """The autopilot rebooted: its clock restarted, so earlier bounds mean nothing."""
         self._anchors.clear()
+        self.agreement.new_epoch()
+
+    def note_gap(self, samples: Iterable[Tuple[float, float]]) -> None:
+        """Samples' (arrival, delay = arrival minus stamp, s): the fastest of those that arrived between the two
+        newest answers, against the answers' offset interpolated to its arrival, is the clocks' gap then."""
+        if len(self._anchors) < 2:
+            return
+        a, b = self._anchors[-2], self._anchors[-1]
+        if b.at_s <= a.at_s:
+            return
+        m0, m1 = 0.5 * (a.low_s + a.high_s), 0.5 * (b.low_s + b.high_s)
+        gaps = [d - (m0 + (m1 - m0) * (t - a.at_s) / (b.at_s - a.at_s)) for t, d in samples if a.at_s < t <= b.at_s]
+        if gaps:
+            self.agreement.add(b.at_s, min(gaps))
 
     def drift_bounds(self) -> Tuple[float, float]:
         """How fast the offset may shrink and grow (s/s, the first <= -``max_drift``, the second >= ``max_drift``):
@@ -125,12 +193,17 @@ class RoundTrips:
                 and a.high_s + drift[1] * age >= diff_s - self.config.max_delay_s)
 
     def bounds_s(self, now_s: float, diff_s: float) -> Optional[Tuple[float, float]]:
-        """The lowest and highest offset (s) the answers allow at ``now_s``, from those on the clock of a sample
-        that arrived ``diff_s`` after its stamp (None without one). Each answer's bounds widen as it ages, as fast as
-        ``drift_bounds`` allow."""
+        """The lowest and highest offset (s) the newest answers allow at ``now_s``, from those on the clock of a
+        sample that arrived ``diff_s`` after its stamp (None without one, or once the clocks disagree). Each
+        answer's bounds widen as it ages, as fast as ``drift_bounds`` allow."""
+        if self.agreement.why or not self._anchors:
+            return None
         low, high, drift = -math.inf, math.inf, self.drift_bounds()
+        # The newest answers only: carried forward over seconds at an average rate, older ones would cross the
+        # truth when a simulator's lag comes and goes.
+        newest_s = self._anchors[-1].at_s
         for a in self._anchors:
-            if self._agrees(a, now_s, diff_s, drift):
+            if a.at_s >= newest_s - self.config.period_s and self._agrees(a, now_s, diff_s, drift):
                 age = max(now_s - a.at_s, 0.0)
                 low, high = max(low, a.low_s + drift[0] * age), min(high, a.high_s + drift[1] * age)
         return None if high == math.inf else (min(low, high), high)
