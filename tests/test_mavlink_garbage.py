@@ -147,6 +147,7 @@ def test_the_link_takes_real_packets_between_garbage_and_no_lookalike(transport)
     assert all(_key(msg) in sent for msg in taken), {msg.get_type() for msg in taken}
     assert not [msg for msg in taken if getattr(msg, "roll", None) == pytest.approx(LOOKALIKE_ROLL)]
     assert link.peer == (1, 1) and link.telemetry.samples <= 3 * 60
+    assert link.counters()["noise_bytes"] > 0                    # said and counted: a wrong baud rate shows
 
 
 def test_signing_still_refuses_and_counts_bad_signatures_between_garbage(tmp_path):

@@ -72,6 +72,7 @@ class MavlinkLink:
         self._next_timesync_s = 0.0
         self._timesync_said = False
         self._last_answer_s = -math.inf
+        self._noise_seen = 0
 
     # -- life cycle -----------------------------------------------------------------------------------
     def start(self) -> MavlinkLink:
@@ -267,7 +268,21 @@ class MavlinkLink:
                 continue
             if msg is not None:
                 self._handle(msg)
+            self._count_noise(conn)
             self._report()
+
+    def _count_noise(self, conn: Any) -> None:
+        """Bytes that were not MAVLink packets (ResyncParser skipped them): said once, counted always."""
+        skipped = int(getattr(getattr(conn.mav, "resync", None), "skipped_bytes", 0))
+        new = skipped - self._noise_seen
+        if new <= 0:
+            self._noise_seen = min(self._noise_seen, skipped)   # a new connection counts from 0
+            return
+        if self.counts["noise_bytes"] == 0:
+            log.warning("MAVLink %s: bytes that are not MAVLink packets are arriving (noise on the line, a wrong "
+                        "baud rate, another protocol); the packets around them are still read", self.config.url)
+        self._noise_seen = skipped
+        self.counts.add("noise_bytes", new)
 
     def _rejected_signature(self, _mav: Any, _msg_id: int) -> bool:
         """Say so when signed traffic is rejected: a wrong key otherwise drops all telemetry silently."""
