@@ -5,13 +5,15 @@ behind this one: the clock offset (``clock_offset.py``) takes the fastest sample
 telemetry delayed steadily from the start, or for longer than the offset's drift allowance, looks fresh. A
 TIMESYNC request answered with the autopilot's boot clock (ArduPilot: ``tc1`` = the time it received the
 request, in ns, ``ts1`` echoed; PX4 likewise) bounds the offset from both sides, with no assumption about the
-link: ``sent - tc1 <= offset <= arrival - tc1``. Telemetry is mapped with an offset kept within those bounds: the upper
-one makes telemetry that arrives late steadily keep its real, old time; the lower one keeps a clock that runs
-slower than the windowed offset can follow (a lagging simulator) from making on-time telemetry look old. A round
-trip longer than ``max_round_trip_s`` means the link cannot deliver in time at all.
+link: ``sent - tc1 <= offset <= arrival - tc1``. Telemetry is mapped with an offset kept within those bounds:
+the upper one makes telemetry that arrives late steadily keep its real, old time; the lower one keeps a clock that
+runs slower than the windowed offset can follow (a lagging simulator) from making on-time telemetry look old. A
+round trip longer than ``max_round_trip_s`` means the link cannot deliver in time at all. Answers whose clock is
+not the telemetry's (``ClockAgreement``) are ignored.
 
 Pure bookkeeping on the local monotonic clock: the link thread calls ``request`` and ``reply``, the telemetry
-buffer ``cap_s`` and ``problem``; both under the buffer's lock. Memory is bounded (``max_pending``, ``anchors``).
+buffer ``note_gap``, ``bounds_s`` and ``problem``; all under the buffer's lock. Memory is bounded (``max_pending``,
+``anchors``, the agreement's 64 gaps).
 """
 from __future__ import annotations
 
