@@ -313,7 +313,7 @@ class MavlinkLink:
                                                       0, msg_id, interval, 0, 0, 0, 0, 0))
 
     def _timesync(self, now: float) -> None:
-        """A TIMESYNC request a second to the autopilot: its answers tell how late telemetry arrives
+        """A TIMESYNC request to the autopilot every ``timesync.period_s``: its answers tell how late telemetry arrives
         (``timesync.py``). Said once whether it answers: without answers a steady delay looks like a clock offset."""
         period = self.telemetry.config.timesync.period_s
         if self.peer is None or now < self._next_timesync_s:

@@ -126,6 +126,9 @@ class TelemetryBuffer:
         self._estimator: Optional[Tuple[float, int, bool]] = None   # (arrival, flags, GPS glitch) of the newest
         self._said_disagree = False
 
+    def _all_series(self) -> Tuple[TimeSeries, ...]:
+        return self._attitude, self._position, self._range, self._rel_alt
+
     # -- intake (link thread) ----------------------------------------------------------------------------
     def rejected(self) -> Dict[str, int]:
         """Rejected samples by reason (a copy)."""
@@ -181,7 +184,7 @@ class TelemetryBuffer:
             # interpolated with, or matched in place of, the new autopilot's.
             self._reboots = self._clock.reboots
             log.warning("the autopilot's clock restarted (a reboot): " + _STARTS_OVER)
-            return (self._position, self._attitude, self._range, self._rel_alt), \
+            return self._all_series(), \
                 "autopilot rebooted (its clock restarted): every earlier sample dropped"
         if series not in (self._position, self._attitude) or not series.times or t_s <= series.times[-1]:
             return (), ""
@@ -279,7 +282,7 @@ class TelemetryBuffer:
     def forget(self) -> None:
         """Drop every sample (the autopilot changed or rebooted)."""
         with self._lock:
-            for s in (self._attitude, self._position, self._range, self._rel_alt):
+            for s in self._all_series():
                 s.clear()
             self._clock.reset()
             self._position_epoch += 1
@@ -291,8 +294,7 @@ class TelemetryBuffer:
 
     def timesync_reply(self, tc1_ns: int, ts1_ns: int, arrival_s: Optional[float] = None) -> bool:
         """The autopilot's answer to a request; False when it answers none of ours (another component's request
-        on a shared link: counted in ``RoundTrips.unmatched`` only). An answer on another clock than the
-        telemetry's is counted as rejected."""
+        on a shared link: ignored). An answer on another clock than the telemetry's is counted as rejected."""
         arrival = time.monotonic() if arrival_s is None else arrival_s
         with self._lock:
             trips = self._clock.round_trips
@@ -303,7 +305,7 @@ class TelemetryBuffer:
                 return True
             trips.note_gap(self._clock.recent_delays())
             disagree = trips.agreement.why
-            if disagree or trips.note_other_clock(arrival, diff):
+            if disagree or trips.on_other_clock(arrival, diff):
                 self._rejected["TIMESYNC answer on another clock than the telemetry's (ignored)"] += 1
                 if disagree and not self._said_disagree:
                     self._said_disagree = True
@@ -315,7 +317,7 @@ class TelemetryBuffer:
             if bounds is not None and offset - bounds[1] > late and self._clock.delay_s <= late:
                 # The samples kept so far were timed with an offset that took the link's delay for the clocks'
                 # difference (the last one was not capped): older than placed, they would block re-timed ones.
-                for series in (self._attitude, self._position, self._range, self._rel_alt):
+                for series in self._all_series():
                     series.clear()
                 self._rejected["samples timed before a TIMESYNC answer showed them late: dropped"] += 1
             return True

@@ -124,8 +124,6 @@ class RoundTrips:
         self.first_request_s: Optional[float] = None
         self.round_trip_s: Optional[float] = None   # the newest answer's
         self.answered = 0
-        self.unmatched = 0               # answers to no request of ours (or to one forgotten)
-        self.other_clock = 0             # answers ignored: their clock is not the telemetry's
         self.agreement = ClockAgreement(config)
 
     def request(self, now_s: float) -> int:
@@ -144,7 +142,6 @@ class RoundTrips:
         """An answer (``tc1`` the autopilot's clock, ns); False when it answers no request of ours."""
         sent_s = self._pending.pop(int(ts1_ns), None)
         if sent_s is None or not tc1_ns > 0 or arrival_s < sent_s:
-            self.unmatched += 1
             return False
         remote_s = tc1_ns / 1e9
         self._anchors.append(Anchor(sent_s - remote_s, arrival_s - remote_s, arrival_s))
@@ -210,14 +207,9 @@ class RoundTrips:
                 low, high = max(low, a.low_s + drift[0] * age), min(high, a.high_s + drift[1] * age)
         return None if high == math.inf else (min(low, high), high)
 
-    def note_other_clock(self, now_s: float, diff_s: float) -> bool:
-        """True (and counted) when the newest answer is not on the clock of a sample that arrived ``diff_s`` after
-        its stamp."""
-        if not self._anchors:
-            return False
-        other = not self._agrees(self._anchors[-1], now_s, diff_s, self.drift_bounds())
-        self.other_clock += other
-        return other
+    def on_other_clock(self, now_s: float, diff_s: float) -> bool:
+        """True when the newest answer is not on the clock of a sample that arrived ``diff_s`` after its stamp."""
+        return bool(self._anchors) and not self._agrees(self._anchors[-1], now_s, diff_s, self.drift_bounds())
 
     def problem(self, now_s: float) -> str:
         """Why no telemetry may be trusted now ('' when the round trips allow it)."""
