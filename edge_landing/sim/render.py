@@ -23,6 +23,7 @@ from edge_landing.runtime.core.geometry import HvoThresholds, hvo_from_normals
 
 from .effects import Effects, apply_atmosphere, apply_sensor, sky_colour, sun_colour
 from .textures import albedo
+from .water import below_surface, floor_points, fresnel, water_of
 from .world import MISS, Material, World
 
 if TYPE_CHECKING:
@@ -30,7 +31,7 @@ if TYPE_CHECKING:
 
 SKY_MATERIAL = 255
 REFLECTANCE = np.zeros(256, np.float32)
-REFLECTANCE[[Material.GLASS, Material.CURTAIN_WALL, Material.WATER, Material.CAR_PAINT]] = (0.35, 0.3, 0.3, 0.08)
+REFLECTANCE[[Material.GLASS, Material.CURTAIN_WALL, Material.CAR_PAINT]] = (0.35, 0.3, 0.08)   # water: sim.water
 
 
 @dataclass(frozen=True)
@@ -122,6 +123,29 @@ class Renderer:
             out[idx] = k[idx, None] * sky_colour(r, effects)
         return out
 
+    def _surfaces(self, mat: np.ndarray, tri: np.ndarray, points: np.ndarray, dirs: np.ndarray, normals: np.ndarray,
+                  light: np.ndarray, effects: Effects) -> np.ndarray:
+        """K×3 radiance of K hits: textured albedo under ``light`` plus the sky's reflection. Water's texture
+        is its floor's, looked up where the refracted ray meets it (sim.water)."""
+        water = np.flatnonzero(mat == Material.WATER)
+        tex_points = points
+        if water.size:
+            tex_points = points.copy()
+            kind = water_of(self.world.style)
+            tex_points[water], path_m = floor_points(points[water], dirs[water], normals[water], kind.floor_depth_m)
+        alb = albedo(self.world, mat, tri, tex_points, normals)
+        if self.palette is not None:
+            alb = self.palette.apply(alb, mat, tri, tex_points)
+        out = alb * light + self._reflections(mat, dirs, normals, effects)
+        if water.size:
+            r = fresnel(dirs[water], normals[water])
+            d = dirs[water] / np.linalg.norm(dirs[water], axis=1, keepdims=True)
+            n = normals[water].astype(np.float64)
+            mirrored = d - 2.0 * np.sum(d * n, axis=1, keepdims=True) * n
+            out[water] = (1.0 - r)[:, None] * below_surface(kind, out[water], light[water], path_m) \
+                + r[:, None] * sky_colour(mirrored, effects)
+        return np.asarray(out, np.float32)
+
     def render(self, position_ned: np.ndarray, attitude: Attitude, effects: Effects,
                rng: np.random.Generator) -> Rendering:
         g = self.geometry(position_ned, attitude)
@@ -138,10 +162,7 @@ class Renderer:
             ambient = np.array([0.42, 0.47, 0.56], np.float32) * (0.55 - 0.45 * n_hit[:, 2:3])
             light = sun_colour(effects) * (lambert[hit] * lit[hit] * 0.95)[:, None] + ambient
             mat = g.material[hit]
-            alb = albedo(self.world, mat, g.triangle[hit], g.points_ned[hit], n_hit)
-            if self.palette is not None:
-                alb = self.palette.apply(alb, mat, g.triangle[hit], g.points_ned[hit])
-            rgb[hit] = alb * light + self._reflections(mat, g.dirs_ned[hit], n_hit, effects)
+            rgb[hit] = self._surfaces(mat, g.triangle[hit], g.points_ned[hit], g.dirs_ned[hit], n_hit, light, effects)
         dirs = g.dirs_ned[sky]
         rgb[sky] = sky_colour(dirs / np.linalg.norm(dirs, axis=1, keepdims=True), effects)
         rgb = apply_atmosphere(rgb, g.depth_m * self._ray_length, sky, effects)

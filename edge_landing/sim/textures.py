@@ -19,7 +19,7 @@ _BASE = {
     Material.ROOF_TILE: (1.0, 1.0, 1.0), Material.ROOF_FLAT: (1.0, 1.0, 1.0), Material.WALL: (1.0, 1.0, 1.0),
     Material.FACADE: (1.0, 1.0, 1.0), Material.FOLIAGE: (0.20, 0.33, 0.12), Material.TRUNK: (0.30, 0.22, 0.15),
     Material.CAR_PAINT: (1.0, 1.0, 1.0), Material.GLASS: (0.10, 0.12, 0.15), Material.CLUTTER: (0.85, 0.85, 0.85),
-    Material.TERRAIN: (0.30, 0.44, 0.17), Material.CURTAIN_WALL: (0.30, 0.36, 0.42), Material.WATER: (0.16, 0.50, 0.62),
+    Material.TERRAIN: (0.30, 0.44, 0.17), Material.CURTAIN_WALL: (0.30, 0.36, 0.42), Material.WATER: (0.62, 0.76, 0.78),
 }
 
 
@@ -121,7 +121,8 @@ def albedo(world: World, material: np.ndarray, tri: np.ndarray, points: np.ndarr
         shade[idx] = np.where(mullion, 0.55, 0.8 + 0.5 * panel)
     idx = sel(Material.WATER)
     if idx.size:
-        shade[idx] = 1 + 0.12 * _sample(1, s[idx], t[idx], 5.0)
+        # The floor under the water (render.py looks it up where the refracted ray meets it; sim.water).
+        shade[idx] = 1 + 0.15 * _sample(1, s[idx], t[idx], 5.0) + 0.08 * _sample(0, s[idx], t[idx], 10.0)
     idx = sel(Material.CAR_PAINT)
     if idx.size:
         shade[idx] = 1 + 0.03 * _sample(1, s[idx], t[idx], 4.0)
