@@ -34,6 +34,14 @@ REFLECTANCE = np.zeros(256, np.float32)
 REFLECTANCE[[Material.GLASS, Material.CURTAIN_WALL, Material.CAR_PAINT]] = (0.35, 0.3, 0.08)   # water: sim.water
 
 
+def _mirrored(dirs: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """K×3 unit directions of view rays ``dirs`` mirrored at surfaces with unit ``normals``."""
+    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    n = normals.astype(np.float64)
+    out: np.ndarray = d - 2.0 * np.sum(d * n, axis=1, keepdims=True) * n
+    return out
+
+
 @dataclass(frozen=True)
 class Geometry:
     """Per-pixel ray-cast truth. Arrays are H×W(×3); sky = NaN / 255 / -1."""
@@ -117,10 +125,7 @@ class Renderer:
         k = REFLECTANCE[material]
         idx = np.flatnonzero(k > 0)
         if idx.size:
-            d = dirs[idx] / np.linalg.norm(dirs[idx], axis=1, keepdims=True)
-            n = normals[idx].astype(np.float64)
-            r = d - 2.0 * np.sum(d * n, axis=1, keepdims=True) * n
-            out[idx] = k[idx, None] * sky_colour(r, effects)
+            out[idx] = k[idx, None] * sky_colour(_mirrored(dirs[idx], normals[idx]), effects)
         return out
 
     def _surfaces(self, mat: np.ndarray, tri: np.ndarray, points: np.ndarray, dirs: np.ndarray, normals: np.ndarray,
@@ -128,10 +133,10 @@ class Renderer:
         """K×3 radiance of K hits: textured albedo under ``light`` plus the sky's reflection. Water's texture
         is its floor's, looked up where the refracted ray meets it (sim.water)."""
         water = np.flatnonzero(mat == Material.WATER)
-        tex_points = points
+        kind = water_of(self.world.style)
+        tex_points, path_m = points, np.zeros(0)
         if water.size:
             tex_points = points.copy()
-            kind = water_of(self.world.style)
             tex_points[water], path_m = floor_points(points[water], dirs[water], normals[water], kind.floor_depth_m)
         alb = albedo(self.world, mat, tri, tex_points, normals)
         if self.palette is not None:
@@ -139,11 +144,8 @@ class Renderer:
         out = alb * light + self._reflections(mat, dirs, normals, effects)
         if water.size:
             r = fresnel(dirs[water], normals[water])
-            d = dirs[water] / np.linalg.norm(dirs[water], axis=1, keepdims=True)
-            n = normals[water].astype(np.float64)
-            mirrored = d - 2.0 * np.sum(d * n, axis=1, keepdims=True) * n
             out[water] = (1.0 - r)[:, None] * below_surface(kind, out[water], light[water], path_m) \
-                + r[:, None] * sky_colour(mirrored, effects)
+                + r[:, None] * sky_colour(_mirrored(dirs[water], normals[water]), effects)
         return np.asarray(out, np.float32)
 
     def render(self, position_ned: np.ndarray, attitude: Attitude, effects: Effects,
