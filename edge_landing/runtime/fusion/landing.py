@@ -54,20 +54,20 @@ def _score(clearance_m: float | np.ndarray, travel_m: float | np.ndarray,
     return score
 
 
-def choose_spot(view: GridView, here_ne: Tuple[float, float], config: FusionConfig, kept: Optional[KeptSpot] = None
-                ) -> Optional[Choice]:
-    """Best spot on ``view`` for a vehicle at ``here_ne`` (north, east in the grid's frame), or None.
+_NEAR_M = 10.0     # the best spot is looked for within this distance (each axis) first
 
-    ``config`` is a FusionConfig (required_clearance_m, clearance_saturation_m, travel_penalty_per_m,
-    hysteresis_m are used).
-    """
-    need = config.required_clearance_m
-    clearance = view.clearance_m
-    flat_idx = np.flatnonzero(clearance.ravel() >= need - 1e-6)
+
+def _best(view: GridView, here_ne: Tuple[float, float], config: FusionConfig, rows: slice, cols: slice
+          ) -> Optional[tuple[int, int, float, float, float]]:
+    """(row, col, north, east, score) of the best-scoring candidate among the cells ``rows`` × ``cols``, the first
+    in grid order on ties, or None without candidates there."""
+    clearance = view.clearance_m[rows, cols]
+    flat_idx = np.flatnonzero(clearance.ravel() >= config.required_clearance_m - 1e-6)
     if flat_idx.size == 0:
         return None
-    cols = view.shape[1]
-    rows_i, cols_i = np.divmod(flat_idx, cols)
+    rows_i, cols_i = np.divmod(flat_idx, clearance.shape[1])
+    rows_i += rows.start or 0
+    cols_i += cols.start or 0
     north = view.north0_m + (rows_i + 0.5) * view.cell_m
     east = view.east0_m + (cols_i + 0.5) * view.cell_m
     dn, de = north - here_ne[0], east - here_ne[1]
@@ -80,8 +80,42 @@ def choose_spot(view: GridView, here_ne: Tuple[float, float], config: FusionConf
     near = np.flatnonzero(rough >= top - 1e-9 * (1.0 + config.clearance_saturation_m + abs(top)))
     scores = _score(clear_c[near], np.hypot(dn[near], de[near]), config)
     best = int(near[int(np.argmax(scores))])
-    r, c = int(rows_i[best]), int(cols_i[best])
-    pick = (float(north[best]), float(east[best]), float(scores.max()), False)
+    return int(rows_i[best]), int(cols_i[best]), float(north[best]), float(east[best]), float(scores.max())
+
+
+def _near(view: GridView, here_ne: Tuple[float, float], reach_m: float) -> tuple[slice, slice]:
+    """The cells whose centre is within ``reach_m`` of ``here_ne`` along each axis (computed as in :func:`_best`)."""
+    rows, cols = view.shape
+    dn = np.abs(view.north0_m + (np.arange(rows) + 0.5) * view.cell_m - here_ne[0])
+    de = np.abs(view.east0_m + (np.arange(cols) + 0.5) * view.cell_m - here_ne[1])
+    r, c = np.flatnonzero(dn <= reach_m), np.flatnonzero(de <= reach_m)
+    if r.size == 0 or c.size == 0:
+        return slice(0, 0), slice(0, 0)
+    return slice(int(r[0]), int(r[-1]) + 1), slice(int(c[0]), int(c[-1]) + 1)
+
+
+def choose_spot(view: GridView, here_ne: Tuple[float, float], config: FusionConfig, kept: Optional[KeptSpot] = None
+                ) -> Optional[Choice]:
+    """Best spot on ``view`` for a vehicle at ``here_ne`` (north, east in the grid's frame), or None.
+
+    ``config`` is a FusionConfig (required_clearance_m, clearance_saturation_m, travel_penalty_per_m,
+    hysteresis_m are used).
+    """
+    need = config.required_clearance_m
+    clearance = view.clearance_m
+    # Near cells first. A cell beyond _NEAR_M along an axis is farther than that, so it scores at most
+    # saturation - penalty·_NEAR_M (float32 saturation: the clearance is float32); when the best near score
+    # beats that bound by more than any rounding, no other cell can match it, else the whole grid is scored.
+    near = _near(view, here_ne, _NEAR_M)
+    best = _best(view, here_ne, config, *near)
+    sat = max(config.clearance_saturation_m, float(np.float32(config.clearance_saturation_m)))
+    bound = sat - config.travel_penalty_per_m * _NEAR_M
+    if best is None or not best[4] > bound + 1e-9 * (1.0 + abs(bound)):
+        best = _best(view, here_ne, config, slice(None), slice(None))
+        if best is None:
+            return None
+    r, c = best[0], best[1]
+    pick = (best[2], best[3], best[4], False)
 
     if kept is not None:
         cell = view.cell_of(kept.north_m, kept.east_m)
