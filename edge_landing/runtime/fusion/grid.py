@@ -219,20 +219,29 @@ class TopDownGrid:
         if north_m.shape[0] == 0:
             return 0
         scale = np.float32(1.0 / self.cell_m)
-        r = np.floor((north_m + np.float32(offset_ned_m[0] - self.north0_m)) * scale).astype(np.int32)
-        c = np.floor((east_m + np.float32(offset_ned_m[1] - self.east0_m)) * scale).astype(np.int32)
-        r0, r1 = max(int(r.min()) - 1, 0), min(int(r.max()) + 2, s)
-        c0, c1 = max(int(c.min()) - 1, 0), min(int(c.max()) + 2, s)
+        r = _cell_index(north_m, np.float32(offset_ned_m[0] - self.north0_m), scale)
+        c = _cell_index(east_m, np.float32(offset_ned_m[1] - self.east0_m), scale)
+        r_lo, r_hi, c_lo, c_hi = int(r.min()), int(r.max()), int(c.min()), int(c.max())
+        r0, r1 = max(r_lo - 1, 0), min(r_hi + 2, s)
+        c0, c1 = max(c_lo - 1, 0), min(c_hi + 2, s)
         if r0 >= r1 or c0 >= c1:
             return 0
         rows, cols = r1 - r0, c1 - c0
         n_cells = rows * cols
         r -= r0
         c -= c0
-        # intp indices and float64 weights: np.bincount would convert anything else first.
-        idx = r.astype(np.intp) * cols + c
-        # Negative values wrap to huge unsigned ones: one comparison per axis tests both ends.
-        idx[(r.view(np.uint32) >= rows) | (c.view(np.uint32) >= cols)] = n_cells
+        # Negative values wrap to huge unsigned ones: one comparison per axis tests both ends. An axis whose
+        # samples all fell inside the grid needs no test.
+        outside = None
+        if r_lo < 0 or r_hi >= s:
+            outside = r.view(np.uintp) >= rows
+        if c_lo < 0 or c_hi >= s:
+            outside = c.view(np.uintp) >= cols if outside is None else outside | (c.view(np.uintp) >= cols)
+        idx = r                                             # intp: np.bincount would convert anything else first
+        idx *= cols
+        idx += c
+        if outside is not None:
+            idx[outside] = n_cells
         h = (down_m + np.float32(offset_ned_m[2] - self.ref_down_m)).astype(np.float64)
         if self._buf.shape[1] < n_cells + 1:                 # reused across frames: no fresh pages to fault in
             self._buf = np.empty((_N_SUMS, n_cells + 1), dtype=np.float64)
@@ -240,8 +249,9 @@ class TopDownGrid:
         crop[0] = np.bincount(idx, minlength=n_cells + 1)
         crop[1] = np.bincount(idx, weights=h, minlength=n_cells + 1)
         crop[2] = np.bincount(idx, weights=h * h, minlength=n_cells + 1)
-        crop[3] = np.bincount(idx, weights=horizontal.astype(np.float64), minlength=n_cells + 1)
-        crop[4] = np.bincount(idx, weights=flat.astype(np.float64), minlength=n_cells + 1)
+        # float64 weights (no copy when the caller gathered them as float64 already).
+        crop[3] = np.bincount(idx, weights=np.asarray(horizontal, dtype=np.float64), minlength=n_cells + 1)
+        crop[4] = np.bincount(idx, weights=np.asarray(flat, dtype=np.float64), minlength=n_cells + 1)
         inside = int(idx.shape[0] - crop[0, n_cells])
         self._frame = (r0, c0, crop[:, :n_cells].reshape(_N_SUMS, rows, cols))
         return inside
@@ -298,6 +308,14 @@ class TopDownGrid:
             clearance[r0:r1, c0:c1] = clearance_from_mask(landable[r0:r1, c0:c1], self.cell_m)
         return GridView(frame, self.cell_m, self.north0_m, self.east0_m, self.ref_down_m, self.sums, landable,
                         clearance, self.votes, self.seen, rules.min_seen_weight)
+
+
+def _cell_index(x: np.ndarray, offset: np.float32, scale: np.float32) -> np.ndarray:
+    """floor((x + offset) · scale) in float32, as intp cell indices (the arithmetic in place, one temporary)."""
+    t = x + offset
+    t *= scale
+    np.floor(t, out=t)
+    return t.astype(np.intp)
 
 
 def judge_cells(sums: np.ndarray, rules: CellRules) -> np.ndarray:

@@ -282,8 +282,10 @@ class GeometryGrid:
                 high_w = self._w[1][g] * decay
                 det[v], fused_high = self._fused_now(g, now_s)
                 high[v] = ((high_w > 0) & (high_w >= self.obstacle_vote_share * seen)) | fused_high
-                since = now_s - self._clear_t[g]
-                age[v] = np.where(np.isfinite(since), since, np.inf)
+                since = age[v]
+                np.subtract(now_s, self._clear_t[g], out=since)
+                if not math.isfinite(now_s):       # (with a finite time, never-confirmed cells come out +inf already)
+                    since[~np.isfinite(since)] = np.inf
                 base[v] = self._clear_base[g]
         obstacle = cv2.dilate(high.view(np.uint8), self._grow).astype(bool)
         if v is not None:       # only cells inside the evidence box can be clear (age is inf outside)
@@ -356,10 +358,10 @@ def _level_steps(down: np.ndarray, max_step_m: float, kernel: np.ndarray) -> np.
     out: np.ndarray = finite.copy()
     if not finite.any():
         return out
-    hi = cv2.dilate(np.where(finite, down, -np.inf).astype(np.float32), kernel, borderType=cv2.BORDER_CONSTANT,
-                    borderValue=-np.inf)
-    lo = cv2.erode(np.where(finite, down, np.inf).astype(np.float32), kernel, borderType=cv2.BORDER_CONSTANT,
-                   borderValue=np.inf)
+    hi = cv2.dilate(np.where(finite, down, -np.inf).astype(np.float32, copy=False), kernel,
+                    borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+    lo = cv2.erode(np.where(finite, down, np.inf).astype(np.float32, copy=False), kernel,
+                   borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
     out &= (hi - down > max_step_m) | (down - lo > max_step_m)
     return out
 
