@@ -295,16 +295,22 @@ class GeometryGrid:
 
     def _fused_now(self, g: tuple[slice, slice], now_s: float) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_fused_evidence` on array cells ``g`` with the single-pair heights still within the memory at
-        ``now_s``. Between stage runs only that "within" mask changes with time: the result is reused while the
-        mask is the same (the memo is dropped whenever the arrays change)."""
-        within = now_s - self._det_t[g] <= self.memory_s
+        ``now_s``. Between stage runs only that "within" mask changes with time, and only by cells leaving it
+        (now - t grows with now and shrinks with t, rounding included): while time has not gone back and the
+        oldest height within at the last computation still is, the mask is the same and so is the result
+        (elementwise, so a window of it serves a smaller ``g``). The memo is dropped whenever the arrays change."""
         memo = self._memo
         sub = memo.inside(g)
-        if sub is not None and memo.fused is not None and np.array_equal(memo.fused[0][sub], within):
-            return memo.fused[1][sub], memo.fused[2][sub]
+        if sub is not None and memo.fused is not None:
+            then_s, oldest_s, det, fused_high = memo.fused
+            if now_s >= then_s and now_s - oldest_s <= self.memory_s:
+                return det[sub], fused_high[sub]
+        det_t = self._det_t[g]
+        within = now_s - det_t <= self.memory_s
         best = np.where(within, self._det[g], np.inf).astype(np.float32)
         det, fused_high = self._fused_evidence(self._fused[:, g[0], g[1]], best)
-        memo.box, memo.fused = g, (within, det, fused_high)
+        oldest_s = float(det_t[within].min()) if within.any() else math.inf     # none within: none will be
+        memo.box, memo.fused = g, (now_s, oldest_s, det, fused_high)
         return det, fused_high
 
     def _steps_now(self, g: tuple[slice, slice], clear: np.ndarray) -> np.ndarray:
@@ -330,7 +336,8 @@ class _ViewMemo:
 
     def __init__(self) -> None:
         self.box: Optional[tuple[slice, slice]] = None
-        self.fused: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]] = None    # within, detectable, high
+        # time, oldest single-pair height within the memory then, detectable, high
+        self.fused: Optional[tuple[float, float, np.ndarray, np.ndarray]] = None
         self.steps_box: Optional[tuple[slice, slice]] = None
         self.steps: Optional[tuple[np.ndarray, np.ndarray]] = None                # clear, level steps
 
