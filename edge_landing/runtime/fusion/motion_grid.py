@@ -32,6 +32,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from edge_landing.runtime.fusion.geometry_memo import ViewMemo, _level_steps, steps_at_cut_sides
 from edge_landing.runtime.fusion.grid import recentre
 from edge_landing.runtime.fusion.motion import ParallaxResult
 
@@ -102,7 +103,7 @@ class GeometryGrid:
         # Grid cell (r, c) is array cell (r + dr, c + dc): moves are applied to the arrays only when evidence is
         # added (the vehicle moves a cell most frames, the stage runs on few of them).
         self._pending = (0, 0)
-        self._memo = _ViewMemo()
+        self._memo = ViewMemo()
 
     def centre_on(self, north_m: float, east_m: float) -> None:
         """Move so that (north, east) is near the centre (same rule as fusion's TopDownGrid), keeping the overlap.
@@ -127,7 +128,7 @@ class GeometryGrid:
         if dr == 0 and dc == 0:
             return
         self._pending = (0, 0)
-        self._memo = _ViewMemo()
+        self._memo = ViewMemo()
         box = self._box
         for name, fill in (("_det", np.inf), ("_det_t", -np.inf), ("_clear_t", -np.inf), ("_clear_base", np.nan),
                            ("_clear_down", np.nan), ("_w", 0.0), ("_fused", 0.0)):
@@ -141,7 +142,7 @@ class GeometryGrid:
     def add(self, result: ParallaxResult) -> int:
         """Merge one frame's evidence; returns the number of cells it measured."""
         self._apply_move()
-        self._memo = _ViewMemo()
+        self._memo = ViewMemo()
         t = result.time_s
         if self._time_s is not None:
             if t < self._time_s:            # time went backwards: nothing older can be trusted
@@ -316,61 +317,26 @@ class GeometryGrid:
     def _steps_now(self, g: tuple[slice, slice], clear: np.ndarray) -> np.ndarray:
         """:func:`_level_steps` of the levels of the ``clear`` cells among array cells ``g``.
 
-        Reused from the last call when the arrays did not change since, ``g`` lies within its cells, the clear
-        cells there are the same and none of its clear cells fell outside ``g`` (a cell without a clear level
-        counts exactly as a cell beyond the border: neither takes part in the dilation or the erosion)."""
+        Reused from the last call when the arrays did not change since, ``g`` lies within its cells and the clear
+        cells there are the same (a cell without a clear level counts exactly as a cell beyond the border:
+        neither takes part in the dilation or the erosion); where clear cells fell outside ``g`` (the grid moved),
+        only the cells within the kernel's reach of those sides are recomputed."""
         memo = self._memo
         sub = memo.inside(g, steps=True)
         if sub is not None and memo.steps is not None:
             was_clear, steps = memo.steps
-            outside = np.count_nonzero(was_clear) - np.count_nonzero(was_clear[sub])
-            if outside == 0 and np.array_equal(was_clear[sub], clear):
-                return steps[sub]
+            if np.array_equal(was_clear[sub], clear):
+                (r, c), step = sub, self._level_step_m
+                cut = (bool(was_clear[:r.start].any()), bool(was_clear[r.stop:].any()),
+                       bool(was_clear[:, :c.start].any()), bool(was_clear[:, c.stop:].any()))
+                if not any(cut):
+                    return steps[sub]
+                steps = steps_at_cut_sides(steps[sub], clear, self._clear_down[g], cut, step, self._reach)
+                memo.steps_box, memo.steps = g, (clear.copy(), steps)
+                return steps
         steps = _level_steps(np.where(clear, self._clear_down[g], np.nan), self._level_step_m, self._reach)
         memo.steps_box, memo.steps = g, (clear.copy(), steps)
         return steps
-
-
-class _ViewMemo:
-    """What :meth:`GeometryGrid.view` computed last on the unchanged arrays, and on which array cells."""
-
-    def __init__(self) -> None:
-        self.box: Optional[tuple[slice, slice]] = None
-        # time, oldest single-pair height within the memory then, detectable, high
-        self.fused: Optional[tuple[float, float, np.ndarray, np.ndarray]] = None
-        self.steps_box: Optional[tuple[slice, slice]] = None
-        self.steps: Optional[tuple[np.ndarray, np.ndarray]] = None                # clear, level steps
-
-    def inside(self, g: tuple[slice, slice], steps: bool = False) -> Optional[tuple[slice, slice]]:
-        """``g`` relative to the memo's cells, or None when it does not lie within them."""
-        box = self.steps_box if steps else self.box
-        if box is None:
-            return None
-        (r, c), (br, bc) = g, box
-        if r.start < br.start or r.stop > br.stop or c.start < bc.start or c.stop > bc.stop:
-            return None
-        return slice(r.start - br.start, r.stop - br.start), slice(c.start - bc.start, c.stop - bc.start)
-
-
-def _level_steps(down: np.ndarray, max_step_m: float, kernel: np.ndarray) -> np.ndarray:
-    """Cells within ``kernel`` of a cell whose surface lies more than ``max_step_m`` higher or lower (NaN: no
-    level there).
-
-    Each pair judges heights against its own local ground: a roof measured on its own plane and the street
-    measured on the ground's are both clear, and a disc over the roof's edge would hold only clear cells. The
-    levels of the surfaces that confirmed nearby cells must agree; a band of cells along every step is left
-    unconfirmed, so no clear disc spans one (the kernel reaches over a one-cell gap: a hole-filled cell has
-    no level of its own)."""
-    finite = np.isfinite(down)
-    out: np.ndarray = finite.copy()
-    if not finite.any():
-        return out
-    hi = cv2.dilate(np.where(finite, down, -np.inf).astype(np.float32, copy=False), kernel,
-                    borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
-    lo = cv2.erode(np.where(finite, down, np.inf).astype(np.float32, copy=False), kernel,
-                   borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
-    out &= (hi - down > max_step_m) | (down - lo > max_step_m)
-    return out
 
 
 def _fill_holes(det: np.ndarray, empty: np.ndarray, min_neighbours: int = 5) -> np.ndarray:
