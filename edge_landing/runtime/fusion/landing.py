@@ -54,20 +54,17 @@ def _score(clearance_m: float | np.ndarray, travel_m: float | np.ndarray,
     return score
 
 
-_NEAR_M = 10.0     # the best spot is looked for within this distance (each axis) first
+_NEAR_M = 10.0     # with many candidates, the best spot is looked for within this distance (each axis) first
+_MANY = 1000
 
 
-def _best(view: GridView, here_ne: Tuple[float, float], config: FusionConfig, rows: slice, cols: slice
-          ) -> Optional[tuple[int, int, float, float, float]]:
-    """(row, col, north, east, score) of the best-scoring candidate among the cells ``rows`` × ``cols``, the first
-    in grid order on ties, or None without candidates there."""
-    clearance = view.clearance_m[rows, cols]
-    flat_idx = np.flatnonzero(clearance.ravel() >= config.required_clearance_m - 1e-6)
-    if flat_idx.size == 0:
-        return None
+def _best(view: GridView, here_ne: Tuple[float, float], config: FusionConfig, clearance: np.ndarray,
+          flat_idx: np.ndarray, row0: int = 0, col0: int = 0) -> tuple[int, int, float, float, float]:
+    """(row, col, north, east, score) of the best-scoring candidate ``flat_idx`` (flat indices, grid order) of
+    ``clearance``, a block of the grid's cells from (row0, col0); the first in grid order on ties."""
     rows_i, cols_i = np.divmod(flat_idx, clearance.shape[1])
-    rows_i += rows.start or 0
-    cols_i += cols.start or 0
+    rows_i += row0
+    cols_i += col0
     north = view.north0_m + (rows_i + 0.5) * view.cell_m
     east = view.east0_m + (cols_i + 0.5) * view.cell_m
     dn, de = north - here_ne[0], east - here_ne[1]
@@ -94,6 +91,25 @@ def _near(view: GridView, here_ne: Tuple[float, float], reach_m: float) -> tuple
     return slice(int(r[0]), int(r[-1]) + 1), slice(int(c[0]), int(c[-1]) + 1)
 
 
+def _best_near(view: GridView, here_ne: Tuple[float, float], config: FusionConfig
+               ) -> Optional[tuple[int, int, float, float, float]]:
+    """:func:`_best` over the whole grid when it lies near the vehicle, else None.
+
+    A cell beyond _NEAR_M along an axis is farther than that (hypot >= each |axis|, rounding is monotone), so it
+    scores at most saturation - penalty·_NEAR_M (float32 saturation: the clearance is float32). When the best
+    near score beats that bound by more than any rounding, every cell with the best score is near, and the
+    near block's row-major order is the grid's: the same cell, score and tie-breaking."""
+    rows, cols = _near(view, here_ne, _NEAR_M)
+    block = view.clearance_m[rows, cols]
+    idx = np.flatnonzero(block.ravel() >= config.required_clearance_m - 1e-6)
+    if idx.size == 0:
+        return None
+    best = _best(view, here_ne, config, block, idx, rows.start, cols.start)
+    sat = max(config.clearance_saturation_m, float(np.float32(config.clearance_saturation_m)))
+    bound = sat - config.travel_penalty_per_m * _NEAR_M
+    return best if best[4] > bound + 1e-9 * (1.0 + abs(bound)) else None
+
+
 def choose_spot(view: GridView, here_ne: Tuple[float, float], config: FusionConfig, kept: Optional[KeptSpot] = None
                 ) -> Optional[Choice]:
     """Best spot on ``view`` for a vehicle at ``here_ne`` (north, east in the grid's frame), or None.
@@ -103,17 +119,12 @@ def choose_spot(view: GridView, here_ne: Tuple[float, float], config: FusionConf
     """
     need = config.required_clearance_m
     clearance = view.clearance_m
-    # Near cells first. A cell beyond _NEAR_M along an axis is farther than that, so it scores at most
-    # saturation - penalty·_NEAR_M (float32 saturation: the clearance is float32); when the best near score
-    # beats that bound by more than any rounding, no other cell can match it, else the whole grid is scored.
-    near = _near(view, here_ne, _NEAR_M)
-    best = _best(view, here_ne, config, *near)
-    sat = max(config.clearance_saturation_m, float(np.float32(config.clearance_saturation_m)))
-    bound = sat - config.travel_penalty_per_m * _NEAR_M
-    if best is None or not best[4] > bound + 1e-9 * (1.0 + abs(bound)):
-        best = _best(view, here_ne, config, slice(None), slice(None))
-        if best is None:
-            return None
+    flat_idx = np.flatnonzero(clearance.ravel() >= need - 1e-6)
+    if flat_idx.size == 0:
+        return None
+    best = _best_near(view, here_ne, config) if flat_idx.size > _MANY else None
+    if best is None:
+        best = _best(view, here_ne, config, clearance, flat_idx)
     r, c = best[0], best[1]
     pick = (best[2], best[3], best[4], False)
 
