@@ -356,3 +356,25 @@ def test_footprint_splatting_leaves_no_holes_in_flat_ground():
         inner = observed[1:-1, 1:-1]
         enclosed = observed[:-2, 1:-1] & observed[2:, 1:-1] & observed[1:-1, :-2] & observed[1:-1, 2:]
         assert not np.any(~inner & enclosed), yaw
+
+
+def test_spot_choice_near_the_vehicle_first_is_the_whole_grids_choice(monkeypatch):
+    """With many candidates the spot is looked for near the vehicle first (fusion.landing); the cell, its score
+    and the tie-breaking must be those of scoring the whole grid."""
+    import edge_landing.runtime.fusion.landing as landing
+    from edge_landing.runtime.fusion.grid import GridView
+
+    rng = np.random.default_rng(5)
+    cfg = FusionConfig()
+    n = 120
+    for trial in range(30):
+        clearance = np.round(rng.uniform(0.0, 6.0, (n, n)), 1).astype(np.float32)   # ties on purpose
+        clearance[rng.random((n, n)) < rng.uniform(0.0, 0.9)] = 0.0
+        sums = np.ones((5, n, n), np.float32)
+        view = GridView("ned", 0.5, -30.0, -30.0, 0.0, sums, clearance > 0, clearance)
+        here = (float(rng.uniform(-40, 40)), float(rng.uniform(-40, 40)))
+        near = landing.choose_spot(view, here, cfg)
+        monkeypatch.setattr(landing, "_MANY", 10 ** 9)                              # whole grid only
+        whole = landing.choose_spot(view, here, cfg)
+        monkeypatch.undo()
+        assert near == whole, trial

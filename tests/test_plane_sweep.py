@@ -167,3 +167,22 @@ def test_cells_confirmed_on_surfaces_at_different_levels_leave_a_band_between_th
     band = down.copy()
     band[:, 5:7] = np.nan                                   # a two-cell unconfirmed band already separates them
     assert not _level_steps(band, 1.2, reach)[:, :4].any()
+
+
+def test_level_steps_patched_at_cut_sides_match_a_whole_recomputation():
+    """Between stage runs the geometry view reuses its level steps as the grid moves: clear cells lost at a side
+    only change the cells within the kernel's reach of it, and the patched result is the whole computation's."""
+    from edge_landing.runtime.fusion.geometry_memo import _level_steps, steps_at_cut_sides
+
+    rng = np.random.default_rng(3)
+    reach = np.ones((5, 5), np.uint8)
+    for trial in range(40):
+        down = np.where(rng.random((30, 34)) < 0.03, -18.0, rng.normal(0, 0.1, (30, 34))).astype(np.float32)
+        clear = rng.random((30, 34)) < 0.7
+        whole = _level_steps(np.where(clear, down, np.nan).astype(np.float32), 1.2, reach)
+        r0, r1, c0, c1 = rng.integers(0, 6), 30 - rng.integers(0, 6), rng.integers(0, 6), 34 - rng.integers(0, 6)
+        sub = np.s_[r0:r1, c0:c1]
+        cut = (bool(clear[:r0].any()), bool(clear[r1:].any()), bool(clear[:, :c0].any()), bool(clear[:, c1:].any()))
+        patched = steps_at_cut_sides(whole[sub], clear[sub], down[sub], cut, 1.2, reach)
+        direct = _level_steps(np.where(clear[sub], down[sub], np.nan).astype(np.float32), 1.2, reach)
+        assert np.array_equal(patched, direct), trial

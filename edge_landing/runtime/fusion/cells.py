@@ -33,9 +33,17 @@ def fill_sampling_holes(sums: np.ndarray, min_count: float, min_neighbours: int,
     if holes.size == 0:
         return sums
     flat = sums.reshape(sums.shape[0], -1)                 # a view unless the layout needs a copy
-    pooled = np.zeros((sums.shape[0], holes.size), dtype=flat.dtype)
-    for off in (-cols - 1, -cols, -cols + 1, -1, 1, cols - 1, cols, cols + 1):
-        pooled += flat[:, holes + off]
+    # All 8 neighbours of every hole in one gather per sum (1-D np.take: several times faster than fancy
+    # indexing), then added in the neighbour order below (from 0, and 0 + x is x: binned sums hold no -0.0).
+    offsets = np.array([-cols - 1, -cols, -cols + 1, -1, 1, cols - 1, cols, cols + 1])
+    near = (holes[None, :] + offsets[:, None]).ravel()
+    gathered = np.empty((sums.shape[0], near.size), dtype=flat.dtype)
+    for k in range(sums.shape[0]):
+        np.take(flat[k], near, out=gathered[k])
+    gathered = gathered.reshape(sums.shape[0], 8, holes.size)
+    pooled = gathered[:, 0].copy()
+    for j in range(1, 8):
+        pooled += gathered[:, j]
     out = flat if in_place and np.shares_memory(flat, sums) else flat.copy()
     out[:, holes] = pooled
     return out.reshape(sums.shape)

@@ -155,11 +155,18 @@ class GeometryConfirmation:
         flat-lying model of benchmarks/lying_model.py) leaves geometry alone, which stayed all safe there."""
         if self.view is None:
             return view
-        allowed = view.landable
-        if use_hvo and self.config.confirm_on_horizontal:
-            with np.errstate(invalid="ignore"):
-                allowed = allowed | (view.observed & (view.horizontal_share >= self.config.min_horizontal_share))
-        landable = allowed & self.view.clear
+        clear = self.view.clear
+        landable = np.zeros(clear.shape, dtype=bool)
+        rows = np.flatnonzero(clear.any(axis=1))
+        if rows.size:                  # only geometry-clear cells can be confirmed: the rest stays False
+            cols = np.flatnonzero(clear.any(axis=0))
+            win = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
+            allowed = view.landable[win]
+            if use_hvo and self.config.confirm_on_horizontal:
+                with np.errstate(invalid="ignore"):
+                    allowed = allowed | (view.observed_in(win)
+                                         & (view.horizontal_share_in(win) >= self.config.min_horizontal_share))
+            landable[win] = allowed & clear[win]
         return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
 
     def evidence(self) -> str:

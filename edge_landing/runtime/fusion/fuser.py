@@ -316,8 +316,9 @@ class LandingFuser:
         half_v = np.take(sv.reshape(3, -1), idx, axis=1) * np.float32(0.5)
         cos2 = np.float32(math.cos(cfg.max_slope_rad) ** 2)
         nz_k = np.take(nz.reshape(-1), idx)
-        flat_px = (nz_k * nz_k >= cos2 * np.take(nn.reshape(-1), idx)).astype(np.float32)
-        hor_px = np.take(hvo_h.reshape(-1), full) if hvo_h is not None else np.ones_like(flat_px)
+        # Votes per pixel in float64, the binning's weight type: gathered per sample below without a conversion.
+        flat_px = (nz_k * nz_k >= cos2 * np.take(nn.reshape(-1), idx)).astype(np.float64)
+        hor_px = np.take(hvo_h.reshape(-1), full).astype(np.float64) if hvo_h is not None else np.ones_like(flat_px)
         samples, pix = splat_samples(p, half_u, half_v, cfg.splat_spacing_m, cfg.max_footprint_m,
                                      cfg.max_samples_per_axis)
         offset = (0.0, 0.0, 0.0) if position is None else tuple(float(x) for x in position)

@@ -27,6 +27,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from edge_landing.runtime.fusion.cells import clearance_from_mask, fill_sampling_holes
+from edge_landing.runtime.fusion.grid_view import GridView
 
 __all__ = ["CellRules", "GridView", "TopDownGrid", "clearance_from_mask", "fill_sampling_holes",
            "judge_cells", "recentre", "splat_samples"]
@@ -51,94 +52,6 @@ class CellRules:
     # frame that observes it and decayed with the evidence (exp(-dt/decay_s)), is at least this; i.e. for
     # decay_s·ln(1/min_seen_weight) seconds after it was last seen, whatever the frame rate.
     min_seen_weight: float = math.exp(-1.5)
-
-
-@dataclass(frozen=True)
-class GridView:
-    """A read-only snapshot of the grid for overlays, selection and tests.
-
-    Rows run along north, columns along east. ``frame`` is ``"ned"`` when the grid is kept in local NED
-    (cell centres and heights are absolute local positions) or ``"vehicle"`` for a level, vehicle-centred
-    grid (NED-oriented, origin at the camera). Per-cell statistics are computed on access (overlays only
-    need them sometimes; the per-frame path reads single cells through :meth:`cell_stats`).
-    """
-
-    frame: str
-    cell_m: float
-    north0_m: float
-    east0_m: float
-    ref_down_m: float          # heights in ``sums`` are relative to this
-    sums: np.ndarray           # 5 × rows × cols: count, Σh, Σh², Σ horizontal votes, Σ flat votes (NED:
-                               # summed over frames, so spread_m there mixes frames; landable uses votes)
-    landable: np.ndarray       # rows × cols bool
-    clearance_m: np.ndarray    # rows × cols float32, 0 where not landable
-    votes: Optional[np.ndarray] = None   # 2 × rows × cols: (decayed) frames that observed / judged landable
-    seen: Optional[np.ndarray] = None    # rows × cols: exp(-time since last observed / decay_s)
-    min_seen_weight: float = 0.0
-
-    @property
-    def observed(self) -> np.ndarray:
-        """rows × cols bool: cells observed recently enough to count (time-bounded memory)."""
-        if self.seen is None:
-            return np.asarray(self.sums[0] > 0)
-        return np.asarray(self.seen >= self.min_seen_weight)
-
-    @property
-    def shape(self) -> tuple[int, ...]:
-        return self.landable.shape
-
-    @property
-    def count(self) -> np.ndarray:
-        count: np.ndarray = self.sums[0].astype(np.float32)
-        return count
-
-    def _mean(self, k: int) -> np.ndarray:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean: np.ndarray = np.where(self.sums[0] > 0, self.sums[k] / self.sums[0], np.nan).astype(np.float32)
-            return mean
-
-    @property
-    def height_m(self) -> np.ndarray:
-        """Mean down coordinate of each cell (NaN where unobserved)."""
-        height_m: np.ndarray = self._mean(1) + np.float32(self.ref_down_m)
-        return height_m
-
-    @property
-    def spread_m(self) -> np.ndarray:
-        mean = self._mean(1)
-        spread_m: np.ndarray = np.sqrt(np.maximum(self._mean(2) - mean * mean, 0.0))
-        return spread_m
-
-    @property
-    def horizontal_share(self) -> np.ndarray:
-        return self._mean(3)
-
-    @property
-    def flat_share(self) -> np.ndarray:
-        return self._mean(4)
-
-    def cell_stats(self, row: int, col: int) -> tuple[float, float, float]:
-        """(down_m, horizontal_share, flat_share) of one observed cell."""
-        c = float(self.sums[0, row, col])
-        return (float(self.sums[1, row, col]) / c + self.ref_down_m, float(self.sums[3, row, col]) / c,
-                float(self.sums[4, row, col]) / c)
-
-    def cell_centres_m(self) -> np.ndarray:
-        """rows×cols×2 array of (north, east) cell centres in metres, in this grid's frame."""
-        rows, cols = self.shape
-        north = self.north0_m + (np.arange(rows) + 0.5) * self.cell_m
-        east = self.east0_m + (np.arange(cols) + 0.5) * self.cell_m
-        out = np.empty((rows, cols, 2), dtype=np.float64)
-        out[..., 0] = north[:, None]
-        out[..., 1] = east[None, :]
-        return out
-
-    def cell_of(self, north_m: float, east_m: float) -> Optional[tuple[int, int]]:
-        """(row, col) of the cell holding a point, or None outside the grid."""
-        r = int(math.floor((north_m - self.north0_m) / self.cell_m))
-        c = int(math.floor((east_m - self.east0_m) / self.cell_m))
-        rows, cols = self.shape
-        return (r, c) if 0 <= r < rows and 0 <= c < cols else None
 
 
 @functools.cache
@@ -306,20 +219,29 @@ class TopDownGrid:
         if north_m.shape[0] == 0:
             return 0
         scale = np.float32(1.0 / self.cell_m)
-        r = np.floor((north_m + np.float32(offset_ned_m[0] - self.north0_m)) * scale).astype(np.int32)
-        c = np.floor((east_m + np.float32(offset_ned_m[1] - self.east0_m)) * scale).astype(np.int32)
-        r0, r1 = max(int(r.min()) - 1, 0), min(int(r.max()) + 2, s)
-        c0, c1 = max(int(c.min()) - 1, 0), min(int(c.max()) + 2, s)
+        r = _cell_index(north_m, np.float32(offset_ned_m[0] - self.north0_m), scale)
+        c = _cell_index(east_m, np.float32(offset_ned_m[1] - self.east0_m), scale)
+        r_lo, r_hi, c_lo, c_hi = int(r.min()), int(r.max()), int(c.min()), int(c.max())
+        r0, r1 = max(r_lo - 1, 0), min(r_hi + 2, s)
+        c0, c1 = max(c_lo - 1, 0), min(c_hi + 2, s)
         if r0 >= r1 or c0 >= c1:
             return 0
         rows, cols = r1 - r0, c1 - c0
         n_cells = rows * cols
         r -= r0
         c -= c0
-        # intp indices and float64 weights: np.bincount would convert anything else first.
-        idx = r.astype(np.intp) * cols + c
-        # Negative values wrap to huge unsigned ones: one comparison per axis tests both ends.
-        idx[(r.view(np.uint32) >= rows) | (c.view(np.uint32) >= cols)] = n_cells
+        # Negative values wrap to huge unsigned ones: one comparison per axis tests both ends. An axis whose
+        # samples all fell inside the grid needs no test.
+        outside = None
+        if r_lo < 0 or r_hi >= s:
+            outside = r.view(np.uintp) >= rows
+        if c_lo < 0 or c_hi >= s:
+            outside = c.view(np.uintp) >= cols if outside is None else outside | (c.view(np.uintp) >= cols)
+        idx = r                                             # intp: np.bincount would convert anything else first
+        idx *= cols
+        idx += c
+        if outside is not None:
+            idx[outside] = n_cells
         h = (down_m + np.float32(offset_ned_m[2] - self.ref_down_m)).astype(np.float64)
         if self._buf.shape[1] < n_cells + 1:                 # reused across frames: no fresh pages to fault in
             self._buf = np.empty((_N_SUMS, n_cells + 1), dtype=np.float64)
@@ -327,8 +249,9 @@ class TopDownGrid:
         crop[0] = np.bincount(idx, minlength=n_cells + 1)
         crop[1] = np.bincount(idx, weights=h, minlength=n_cells + 1)
         crop[2] = np.bincount(idx, weights=h * h, minlength=n_cells + 1)
-        crop[3] = np.bincount(idx, weights=horizontal.astype(np.float64), minlength=n_cells + 1)
-        crop[4] = np.bincount(idx, weights=flat.astype(np.float64), minlength=n_cells + 1)
+        # float64 weights (no copy when the caller gathered them as float64 already).
+        crop[3] = np.bincount(idx, weights=np.asarray(horizontal, dtype=np.float64), minlength=n_cells + 1)
+        crop[4] = np.bincount(idx, weights=np.asarray(flat, dtype=np.float64), minlength=n_cells + 1)
         inside = int(idx.shape[0] - crop[0, n_cells])
         self._frame = (r0, c0, crop[:, :n_cells].reshape(_N_SUMS, rows, cols))
         return inside
@@ -385,6 +308,14 @@ class TopDownGrid:
             clearance[r0:r1, c0:c1] = clearance_from_mask(landable[r0:r1, c0:c1], self.cell_m)
         return GridView(frame, self.cell_m, self.north0_m, self.east0_m, self.ref_down_m, self.sums, landable,
                         clearance, self.votes, self.seen, rules.min_seen_weight)
+
+
+def _cell_index(x: np.ndarray, offset: np.float32, scale: np.float32) -> np.ndarray:
+    """floor((x + offset) · scale) in float32, as intp cell indices (the arithmetic in place, one temporary)."""
+    t = x + offset
+    t *= scale
+    np.floor(t, out=t)
+    return t.astype(np.intp)
 
 
 def judge_cells(sums: np.ndarray, rules: CellRules) -> np.ndarray:

@@ -32,6 +32,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from edge_landing.runtime.fusion.geometry_memo import ViewMemo, _level_steps, steps_at_cut_sides
 from edge_landing.runtime.fusion.grid import recentre
 from edge_landing.runtime.fusion.motion import ParallaxResult
 
@@ -99,27 +100,49 @@ class GeometryGrid:
         self._fused = np.zeros((2, s, s), np.float32)            # decayed Σ 1/σ², Σ h/σ² of the cell's heights
         self._time_s = None
         self._box: Optional[tuple[int, int, int, int]] = None    # rows r0:r1, cols c0:c1 that ever held evidence
+        # Grid cell (r, c) is array cell (r + dr, c + dc): moves are applied to the arrays only when evidence is
+        # added (the vehicle moves a cell most frames, the stage runs on few of them).
+        self._pending = (0, 0)
+        self._memo = ViewMemo()
 
     def centre_on(self, north_m: float, east_m: float) -> None:
-        """Move so that (north, east) is near the centre (same rule as fusion's TopDownGrid), keeping the overlap."""
+        """Move so that (north, east) is near the centre (same rule as fusion's TopDownGrid), keeping the overlap.
+
+        Only the box and the pending move change here. Every cell that is still in the box stayed inside the
+        grid through all the moves since the arrays were last moved (each move clips the box to the grid), so
+        it reads its own value at the summed offset; every cell outside the box holds the fill.
+        """
         (self.north0_m, self.east0_m), (dr, dc) = recentre(self.north0_m, self.east0_m, north_m, east_m, self.size,
                                                            self.cell_m)
         # Without evidence every array holds its "never measured" fill: nothing to move.
         if (dr or dc) and self._box is not None:
-            self._det = _shift(self._det, dr, dc, np.inf)
-            self._det_t = _shift(self._det_t, dr, dc, -np.inf)
-            self._clear_t = _shift(self._clear_t, dr, dc, -np.inf)
-            self._clear_base = _shift(self._clear_base, dr, dc, np.nan)
-            self._clear_down = _shift(self._clear_down, dr, dc, np.nan)
-            self._w = np.stack([_shift(w, dr, dc, 0.0) for w in self._w])
-            self._fused = np.stack([_shift(w, dr, dc, 0.0) for w in self._fused])
             # Cell (r, c) moved to (r - dr, c - dc).
             b = (max(self._box[0] - dr, 0), min(self._box[1] - dr, self.size),
                  max(self._box[2] - dc, 0), min(self._box[3] - dc, self.size))
             self._box = b if b[0] < b[1] and b[2] < b[3] else None
+            self._pending = (self._pending[0] + dr, self._pending[1] + dc)
+
+    def _apply_move(self) -> None:
+        """Write the pending move into the arrays: the box's cells to their place, the fill everywhere else."""
+        dr, dc = self._pending
+        if dr == 0 and dc == 0:
+            return
+        self._pending = (0, 0)
+        self._memo = ViewMemo()
+        box = self._box
+        for name, fill in (("_det", np.inf), ("_det_t", -np.inf), ("_clear_t", -np.inf), ("_clear_base", np.nan),
+                           ("_clear_down", np.nan), ("_w", 0.0), ("_fused", 0.0)):
+            old = getattr(self, name)
+            new = np.full_like(old, fill)
+            if box is not None:
+                r0, r1, c0, c1 = box
+                new[..., r0:r1, c0:c1] = old[..., r0 + dr:r1 + dr, c0 + dc:c1 + dc]
+            setattr(self, name, new)
 
     def add(self, result: ParallaxResult) -> int:
         """Merge one frame's evidence; returns the number of cells it measured."""
+        self._apply_move()
+        self._memo = ViewMemo()
         t = result.time_s
         if self._time_s is not None:
             if t < self._time_s:            # time went backwards: nothing older can be trusted
@@ -244,6 +267,7 @@ class GeometryGrid:
         high = np.zeros((rows, cols), dtype=bool)
         age = np.full((rows, cols), np.inf)
         base = np.full((rows, cols), np.nan, np.float32)
+        clear = np.zeros((rows, cols), dtype=bool)
         box = self._box
         v = None
         if box is not None:
@@ -251,55 +275,68 @@ class GeometryGrid:
             r0, r1 = max(box[0], dr), min(box[1], dr + rows)
             c0, c1 = max(box[2], dc), min(box[3], dc + cols)
             if r0 < r1 and c0 < c1:
-                g = (slice(r0, r1), slice(c0, c1))
+                pr, pc = self._pending
+                g = (slice(r0 + pr, r1 + pr), slice(c0 + pc, c1 + pc))          # in the arrays
                 v = (slice(r0 - dr, r1 - dr), slice(c0 - dc, c1 - dc))
                 decay = 1.0 if self._time_s is None else math.exp(-max(now_s - self._time_s, 0.0) / self.memory_s)
                 seen = self._w[0][g] * decay
                 high_w = self._w[1][g] * decay
-                best = np.where(now_s - self._det_t[g] <= self.memory_s, self._det[g], np.inf).astype(np.float32)
-                det[v], fused_high = self._fused_evidence(self._fused[:, g[0], g[1]], best)
+                det[v], fused_high = self._fused_now(g, now_s)
                 high[v] = ((high_w > 0) & (high_w >= self.obstacle_vote_share * seen)) | fused_high
-                since = now_s - self._clear_t[g]
-                age[v] = np.where(np.isfinite(since), since, np.inf)
+                since = age[v]
+                np.subtract(now_s, self._clear_t[g], out=since)
+                if not math.isfinite(now_s):       # (with a finite time, never-confirmed cells come out +inf already)
+                    since[~np.isfinite(since)] = np.inf
                 base[v] = self._clear_base[g]
-                down = self._clear_down[g]
         obstacle = cv2.dilate(high.view(np.uint8), self._grow).astype(bool)
-        clear = (age <= self.memory_s) & ~obstacle
-        if v is not None:       # only cells inside the evidence box can be clear
-            clear[v] &= ~_level_steps(np.where(clear[v], down, np.nan), self._level_step_m, self._reach)
+        if v is not None:       # only cells inside the evidence box can be clear (age is inf outside)
+            clear[v] = (age[v] <= self.memory_s) & ~obstacle[v]
+            clear[v] &= ~self._steps_now(g, clear[v])
         return GeometryView(now_s, self.obstacle_height_m, clear, obstacle, det, base, age)
 
+    def _fused_now(self, g: tuple[slice, slice], now_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_fused_evidence` on array cells ``g`` with the single-pair heights still within the memory at
+        ``now_s``. Between stage runs only that "within" mask changes with time, and only by cells leaving it
+        (now - t grows with now and shrinks with t, rounding included): while time has not gone back and the
+        oldest height within at the last computation still is, the mask is the same and so is the result
+        (elementwise, so a window of it serves a smaller ``g``). The memo is dropped whenever the arrays change."""
+        memo = self._memo
+        sub = memo.inside(g)
+        if sub is not None and memo.fused is not None:
+            then_s, oldest_s, det, fused_high = memo.fused
+            if now_s >= then_s and now_s - oldest_s <= self.memory_s:
+                return det[sub], fused_high[sub]
+        det_t = self._det_t[g]
+        within = now_s - det_t <= self.memory_s
+        best = np.where(within, self._det[g], np.inf).astype(np.float32)
+        det, fused_high = self._fused_evidence(self._fused[:, g[0], g[1]], best)
+        oldest_s = float(det_t[within].min()) if within.any() else math.inf     # none within: none will be
+        memo.box, memo.fused = g, (now_s, oldest_s, det, fused_high)
+        return det, fused_high
 
-def _level_steps(down: np.ndarray, max_step_m: float, kernel: np.ndarray) -> np.ndarray:
-    """Cells within ``kernel`` of a cell whose surface lies more than ``max_step_m`` higher or lower (NaN: no
-    level there).
+    def _steps_now(self, g: tuple[slice, slice], clear: np.ndarray) -> np.ndarray:
+        """:func:`_level_steps` of the levels of the ``clear`` cells among array cells ``g``.
 
-    Each pair judges heights against its own local ground: a roof measured on its own plane and the street
-    measured on the ground's are both clear, and a disc over the roof's edge would hold only clear cells. The
-    levels of the surfaces that confirmed nearby cells must agree; a band of cells along every step is left
-    unconfirmed, so no clear disc spans one (the kernel reaches over a one-cell gap: a hole-filled cell has
-    no level of its own)."""
-    finite = np.isfinite(down)
-    out: np.ndarray = finite.copy()
-    if not finite.any():
-        return out
-    hi = cv2.dilate(np.where(finite, down, -np.inf).astype(np.float32), kernel, borderType=cv2.BORDER_CONSTANT,
-                    borderValue=-np.inf)
-    lo = cv2.erode(np.where(finite, down, np.inf).astype(np.float32), kernel, borderType=cv2.BORDER_CONSTANT,
-                   borderValue=np.inf)
-    out &= (hi - down > max_step_m) | (down - lo > max_step_m)
-    return out
-
-
-def _shift(a: np.ndarray, dr: int, dc: int, fill: float) -> np.ndarray:
-    """new[r, c] = old[r + dr, c + dc], ``fill`` where that falls outside."""
-    s = a.shape[0]
-    out = np.full_like(a, fill)
-    if abs(dr) >= s or abs(dc) >= s:
-        return out
-    r0, r1, c0, c1 = max(0, -dr), s - max(0, dr), max(0, -dc), s - max(0, dc)
-    out[r0:r1, c0:c1] = a[r0 + dr:r1 + dr, c0 + dc:c1 + dc]
-    return out
+        Reused from the last call when the arrays did not change since, ``g`` lies within its cells and the clear
+        cells there are the same (a cell without a clear level counts exactly as a cell beyond the border:
+        neither takes part in the dilation or the erosion); where clear cells fell outside ``g`` (the grid moved),
+        only the cells within the kernel's reach of those sides are recomputed."""
+        memo = self._memo
+        sub = memo.inside(g, steps=True)
+        if sub is not None and memo.steps is not None:
+            was_clear, steps = memo.steps
+            if np.array_equal(was_clear[sub], clear):
+                (r, c), step = sub, self._level_step_m
+                cut = (bool(was_clear[:r.start].any()), bool(was_clear[r.stop:].any()),
+                       bool(was_clear[:, :c.start].any()), bool(was_clear[:, c.stop:].any()))
+                if not any(cut):
+                    return steps[sub]
+                steps = steps_at_cut_sides(steps[sub], clear, self._clear_down[g], cut, step, self._reach)
+                memo.steps_box, memo.steps = g, (clear.copy(), steps)
+                return steps
+        steps = _level_steps(np.where(clear, self._clear_down[g], np.nan), self._level_step_m, self._reach)
+        memo.steps_box, memo.steps = g, (clear.copy(), steps)
+        return steps
 
 
 def _fill_holes(det: np.ndarray, empty: np.ndarray, min_neighbours: int = 5) -> np.ndarray:
