@@ -168,23 +168,23 @@ def test_the_stage_runs_every_geometry_interval():
 
 
 def test_fused_pairs_confirm_what_no_single_pair_could_and_show_what_none_saw():
-    """Noisy pairs (each detecting 0.8 m) together detect 0.4 m (the gain capped at 2): flat ground gets
-    confirmed after a few frames, and a 0.4 m step that no single pair could see stands out as an obstacle."""
+    """Noisy pairs (each detecting 0.72 m) together detect 0.48 m (the gain capped at 1.5): flat ground gets
+    confirmed after a few frames, and a 0.5 m step that no single pair could see stands out as an obstacle."""
     shape = (20, 20)
     none = np.zeros(shape, bool)
     rng = np.random.default_rng(3)
     flat, step = _grid(), _grid()
     for k in range(6):
         noise = rng.normal(0.0, 0.05, shape)
-        flat.add(_result(noise, np.full(shape, 0.8), none, 0.2 * k, sigma=0.8 / 3))
-        step.add(_result(0.4 + noise, np.full(shape, 0.8), none, 0.2 * k, sigma=0.8 / 3))
-        if k == 0:    # one pair alone: measured to 0.8 m, neither confirmed nor an obstacle
+        flat.add(_result(noise, np.full(shape, 0.72), none, 0.2 * k, sigma=0.72 / 3))
+        step.add(_result(0.5 + noise, np.full(shape, 0.72), none, 0.2 * k, sigma=0.72 / 3))
+        if k == 0:    # one pair alone: measured to 0.72 m, neither confirmed nor an obstacle
             view = flat.view(flat.north0_m, flat.east0_m, (flat.size, flat.size), 0.0)
             assert not view.clear[_cell(flat, 7.6, 7.6)]
     cell = _cell(flat, 7.6, 7.6)
     view = flat.view(flat.north0_m, flat.east0_m, (flat.size, flat.size), 1.0)
     assert view.clear[cell] and not view.obstacle[cell]
-    assert float(view.detectable_m[cell]) == pytest.approx(0.4, abs=1e-3)     # capped: 0.8 / 2, not 0.8 / √6
+    assert float(view.detectable_m[cell]) == pytest.approx(0.48, abs=1e-3)    # capped: 0.72 / 1.5, not 0.72 / √6
     view = step.view(step.north0_m, step.east0_m, (step.size, step.size), 1.0)
     assert view.obstacle[cell] and not view.clear[cell]
 
