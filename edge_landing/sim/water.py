@@ -4,8 +4,8 @@ Still water has no texture of its own. What a camera sees on it either lies belo
 along the refracted ray, about three quarters of its depth down) or moves with the camera (the sky's mirror
 image). Neither moves between two views like a point on the surface, so motion geometry reads water as
 something below the ground plane or as noise, as it would over a real pool or pond; a texture painted on the
-surface itself would read as level ground. Murky water shows no floor: only the sky and its own colour, which
-flow cannot match. Floating weed or scum, which would move with the surface, is not modelled.
+surface itself would read as level ground. Murky water shows no floor: only the sky and its own colour, a smooth
+patch. Floating weed or scum, which would move with the surface, is not modelled.
 
 World frame NED, metres. Pure numpy.
 """

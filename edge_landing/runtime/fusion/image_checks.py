@@ -4,7 +4,9 @@ Motion geometry reads "no parallax" as "level ground". Two inputs give no parall
 - **No texture.** Where the image is uniform (a capture card's "no signal" screen, a lens cap, pixels clipped
   at black or white, a digitally smooth region) DIS has nothing to match and fills the flow in from around:
   zero residual parallax, zero flow noise, read as flat and clear. With sensor noise a uniform patch gives
-  random flow, which the pair's own noise estimate already refuses; without noise nothing does. A pixel is
+  random flow, which the pair's own noise estimate refuses; without noise nothing does. Not caught: the noise
+  passes this check, and next to textured ground DIS fills a smooth patch's flow in from it, so the edge of
+  one (murky water, metres wide) still reads level (README, Known limits). A pixel is
   textured when the weakest direction of its local image gradient (the smaller eigenvalue of the structure
   tensor over a small box, as RMS grey levels per pixel) reaches ``min_texture_grey_px``. Ground of any kind
   seen by a real camera, and every rendered ground material of the sim, clears it many times over. A
