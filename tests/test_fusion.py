@@ -358,10 +358,10 @@ def test_footprint_splatting_leaves_no_holes_in_flat_ground():
         assert not np.any(~inner & enclosed), yaw
 
 
-def test_spot_choice_near_the_vehicle_first_is_the_whole_grids_choice(monkeypatch):
-    """With many candidates the spot is looked for near the vehicle first (fusion.landing); the cell, its score
-    and the tie-breaking must be those of scoring the whole grid."""
-    import edge_landing.runtime.fusion.landing as landing
+def test_spot_choice_is_the_best_scoring_cell_first_in_grid_order():
+    """The spot is the candidate cell with the best score (clearance up to saturation, less the travel penalty),
+    the first in grid order on ties, wherever it lies relative to the vehicle."""
+    from edge_landing.runtime.fusion import landing
     from edge_landing.runtime.fusion.grid import GridView
 
     rng = np.random.default_rng(5)
@@ -373,8 +373,10 @@ def test_spot_choice_near_the_vehicle_first_is_the_whole_grids_choice(monkeypatc
         sums = np.ones((5, n, n), np.float32)
         view = GridView("ned", 0.5, -30.0, -30.0, 0.0, sums, clearance > 0, clearance)
         here = (float(rng.uniform(-40, 40)), float(rng.uniform(-40, 40)))
-        near = landing.choose_spot(view, here, cfg)
-        monkeypatch.setattr(landing, "_MANY", 10 ** 9)                              # whole grid only
-        whole = landing.choose_spot(view, here, cfg)
-        monkeypatch.undo()
-        assert near == whole, trial
+        pick = landing.choose_spot(view, here, cfg)
+        rows, cols = np.nonzero(clearance >= cfg.required_clearance_m - 1e-6)
+        north, east = -30.0 + (rows + 0.5) * 0.5, -30.0 + (cols + 0.5) * 0.5
+        scores = landing._score(clearance[rows, cols], np.hypot(north - here[0], east - here[1]), cfg)
+        best = int(np.argmax(scores))
+        assert pick is not None, trial
+        assert (pick.north_m, pick.east_m) == (float(north[best]), float(east[best])), trial

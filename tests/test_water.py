@@ -85,12 +85,17 @@ def test_geometry_reads_a_clear_pool_below_the_ground_not_level_with_it():
     assert abs(float(np.median(h_grass))) < 0.2
 
 
-def _liar_over(world, path) -> tuple[int, int]:
-    """(geometry-confirmed targets, the liar's own targets on water) along ``path``; every confirmed target
-    is asserted safe by ray casting, water counting as unsafe."""
+def _liar_over(world, path, judge=None) -> tuple[int, int]:
+    """(geometry-confirmed targets, the liar's own targets on water) along ``path``. Every confirmed target is
+    passed to ``judge(frame, target)``, by default an assertion that it is safe by ray casting (water unsafe)."""
     truth = TruthConfig(log="", clearance_m=FusionConfig().required_clearance_m)
     geo = LandingFuser(FusionConfig(), INTR, Mount())
     liar = LandingFuser(FusionConfig(allow_unconfirmed=True), INTR, Mount())
+
+    def safe(k, target):
+        ok, why = check_target(world, *target.position_ned_m[:2], truth)
+        assert ok, (k, why)
+
     confirmed, in_water = 0, 0
     for k, t, r, state in _frames(world, path):
         pred = lying_prediction(INTR, Mount(), state, k)
@@ -98,8 +103,7 @@ def _liar_over(world, path) -> tuple[int, int]:
         t_liar = liar.update(pred, state, t)
         if t_geo.valid:
             confirmed += 1
-            ok, why = check_target(world, *t_geo.position_ned_m[:2], truth)
-            assert ok, (k, why)
+            (judge or safe)(k, t_geo)
         if t_liar.valid:
             in_water += "water" in check_target(world, *t_liar.position_ned_m[:2], truth)[1]
     return confirmed, in_water
@@ -123,18 +127,10 @@ def test_the_lying_model_gets_no_target_centred_on_a_murky_pond():
     pond_n, pond_e, half_m = 20.0, 0.0, 9.0
     world = _water_world([(pond_n, pond_e, half_m, half_m)], sim.Style.RURAL)
     path = [(-5.0 + 0.5 * k, 2.0 * math.sin(0.2 * k), -30.0) for k in range(60)]
-    truth = TruthConfig(log="", clearance_m=FusionConfig().required_clearance_m)
-    geo = LandingFuser(FusionConfig(), INTR, Mount())
-    liar = LandingFuser(FusionConfig(allow_unconfirmed=True), INTR, Mount())
-    confirmed, in_water = 0, 0
-    for k, t, r, state in _frames(world, path):
-        pred = lying_prediction(INTR, Mount(), state, k)
-        t_geo = geo.update(pred, state, t, r.rgb)
-        t_liar = liar.update(pred, state, t)
-        if t_liar.valid:
-            in_water += "water" in check_target(world, *t_liar.position_ned_m[:2], truth)[1]
-        if t_geo.valid:
-            confirmed += 1
-            n, e = t_geo.position_ned_m[:2]
-            assert max(abs(n - pond_n), abs(e - pond_e)) > half_m, (k, t_geo.position_ned_m)
+
+    def centred_off_the_pond(k, target):
+        n, e = target.position_ned_m[:2]
+        assert max(abs(n - pond_n), abs(e - pond_e)) > half_m, (k, target.position_ned_m)
+
+    confirmed, in_water = _liar_over(world, path, centred_off_the_pond)
     assert confirmed > 0 and in_water > 0                 # not vacuous: targets confirmed, the liar lands in it
