@@ -1,10 +1,21 @@
-"""Geometry gives no evidence from a blank or frozen camera feed (fusion.image_checks)."""
+"""Geometry gives no evidence from a blank or frozen camera feed, or from texture that is only the camera's noise
+(fusion.image_checks)."""
 from __future__ import annotations
 
+from dataclasses import replace
+
+import cv2
 import numpy as np
 import pytest
 
-from edge_landing.runtime.fusion.image_checks import ImageCheckConfig, moved_as_posed, predicted_motion_px, textured
+from edge_landing.runtime.fusion.image_checks import (
+    ImageCheckConfig,
+    moved_as_posed,
+    predicted_motion_px,
+    sensor_noise_grey,
+    texture_masks,
+    textured,
+)
 
 CFG = ImageCheckConfig()
 
@@ -23,6 +34,49 @@ def test_texture_needs_gradients_in_every_direction():
     # One grey level of sensor-like noise is texture enough: a real camera's noise always clears the bar.
     noise = np.clip(128 + np.random.default_rng(1).standard_normal((40, 50)), 0, 255).astype(np.uint8)
     assert textured(noise, CFG).mean() > 0.9
+
+
+def _noisy(img: np.ndarray, sigma: float, seed: int = 3) -> np.ndarray:
+    noise = sigma * np.random.default_rng(seed).standard_normal(img.shape)
+    return np.clip(img.astype(np.float64) + noise, 0, 255).astype(np.uint8)
+
+
+def _ground(h: int, w: int, seed: int) -> np.ndarray:
+    """Texture like a surface's (smooth at the pixel's scale, unlike white noise, which is all noise)."""
+    field = cv2.GaussianBlur(np.random.default_rng(seed).standard_normal((h, w)), (0, 0), 1.5)
+    return np.clip(128 + 40 * field / field.std(), 0, 255).astype(np.uint8)
+
+
+def test_sensor_noise_is_measured_per_brightness_band():
+    # Dark half with 2 grey levels of noise, bright half with 6 (shot noise grows with brightness).
+    img = np.concatenate([_noisy(np.full((60, 80), 40), 2.0), _noisy(np.full((60, 80), 200), 6.0, seed=4)])
+    sigma = sensor_noise_grey(img, CFG)
+    assert np.median(sigma[:60]) == pytest.approx(2.0, rel=0.15)
+    assert np.median(sigma[60:]) == pytest.approx(6.0, rel=0.15)
+    # A brightness with too few pixels for a band of its own (a 10×10 spot) takes the whole image's estimate.
+    spot = np.full((60, 80), 100)
+    spot[45:55, 60:70] = 220
+    spot = _noisy(spot, 3.0)
+    whole = sensor_noise_grey(spot, replace(CFG, noise_bands=1))
+    assert sensor_noise_grey(spot, CFG)[50, 65] == whole[50, 65]
+
+
+def test_texture_that_is_only_noise_does_not_count_beyond_it():
+    """Murky water beside its bank: a smooth surface whose only texture is the camera's noise clears the
+    absolute texture floor, but not the noise-relative check, except within a few pixels of the bank."""
+    bank = _ground(60, 40, seed=5)
+    water = np.full((60, 80), 90, np.uint8)
+    img = _noisy(np.concatenate([bank, water], axis=1), 4.0)
+    tex, beyond = texture_masks(img, CFG)
+    assert tex.mean() > 0.95                                  # the absolute check passes the noise
+    assert beyond[:, :36].mean() > 0.99                       # the bank has texture beyond the noise
+    # The water's interior: noise alone clears 1.2× its own mean energy in scattered clusters only (a 9×9 share
+    # of 15 % is reached by chance here and there; a cell confirms only when all its pixels do).
+    assert beyond[:, 46:].mean() < 0.3
+    assert beyond[:, 40:46].mean() > 0                        # the box reaches a few pixels over the bank
+    # Without any noise the estimate is zero and every textured pixel counts.
+    tex0, beyond0 = texture_masks(_ground(60, 80, seed=6), CFG)
+    assert beyond0.mean() > 0.99 and tex0.mean() > 0.99
 
 
 def test_predicted_motion_is_the_homography_shift():
@@ -49,6 +103,12 @@ def test_config_is_checked():
         ImageCheckConfig(min_texture_grey_px=float("nan"))
     with pytest.raises(InputError, match="min_textured_share"):
         ImageCheckConfig(min_textured_share=1.5)
+    with pytest.raises(InputError, match="noise_texture_ratio"):
+        ImageCheckConfig(noise_texture_ratio=0.0)
+    with pytest.raises(InputError, match="noise_box_px"):
+        ImageCheckConfig(noise_box_px=0)
+    with pytest.raises(InputError, match="min_beyond_noise_share"):
+        ImageCheckConfig(min_beyond_noise_share=-0.1)
 
 
 pytest.importorskip("embreex")

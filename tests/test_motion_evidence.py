@@ -189,6 +189,31 @@ def test_fused_pairs_confirm_what_no_single_pair_could_and_show_what_none_saw():
     assert view.obstacle[cell] and not view.clear[cell]
 
 
+def test_pairs_that_agree_on_a_filled_surface_do_not_confirm_it_however_many():
+    """A parked car's smooth paint: DIS fills its flow in from the ground around it the same way in every pair,
+    so each pair reads it level (heights -0.3 to +0.4 m) while detecting no better than 0.9 m there. The errors
+    are not independent; however many pairs agree, fusion credits at most 1.5x the best pair (0.6 m here,
+    more than the 0.5 m obstacle height), so the cell is never confirmed. At 2x (0.45 m) it was: suburban 9783
+    sent a target whose disc held a car's bonnet (docs/MEASUREMENTS.md, Water)."""
+    shape = (20, 20)
+    none = np.zeros(shape, bool)
+    rng = np.random.default_rng(4)
+    grid = _grid()
+    cell = _cell(grid, 7.6, 7.6)
+    for k in range(40):
+        filled = rng.uniform(-0.3, 0.4) + rng.normal(0.0, 0.02, shape)      # one systematic reading per pair
+        grid.add(_result(filled, np.full(shape, 0.9), none, 0.2 * k, sigma=0.9 / 3))
+        view = grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 0.2 * k)
+        assert not view.clear[cell], k
+    assert float(view.detectable_m[cell]) == pytest.approx(0.6, abs=1e-3)
+    # Not vacuous: with the 2x credit of before, the same pairs confirm the car.
+    lenient = GeometryGrid(0.5, 20.0, 30.0, 0.5, max_fusion_gain=2.0)
+    for k in range(40):
+        filled = rng.uniform(-0.3, 0.4) + rng.normal(0.0, 0.02, shape)
+        lenient.add(_result(filled, np.full(shape, 0.9), none, 0.2 * k, sigma=0.9 / 3))
+    assert lenient.view(lenient.north0_m, lenient.east0_m, (lenient.size, lenient.size), 8.0).clear[cell]
+
+
 def test_ground_seen_under_an_overhang_is_not_seen_from_above():
     """A crown 3-7 m above the ground 2 m around a point: the camera sees the ground under its near edge, but
     the rays that would pass over that point end on the crown, so the point cannot confirm; open ground whose

@@ -85,9 +85,9 @@ def test_geometry_reads_a_clear_pool_below_the_ground_not_level_with_it():
     assert abs(float(np.median(h_grass))) < 0.2
 
 
-def _liar_over(world, path, judge=None) -> tuple[int, int]:
-    """(geometry-confirmed targets, the liar's own targets on water) along ``path``. Every confirmed target is
-    passed to ``judge(frame, target)``, by default an assertion that it is safe by ray casting (water unsafe)."""
+def _liar_over(world, path) -> tuple[int, int]:
+    """(geometry-confirmed targets, the liar's own targets on water) along ``path``; asserts that every confirmed
+    target is safe by ray casting (water unsafe)."""
     truth = TruthConfig(log="", clearance_m=FusionConfig().required_clearance_m)
     geo = LandingFuser(FusionConfig(), INTR, Mount())
     liar = LandingFuser(FusionConfig(allow_unconfirmed=True), INTR, Mount())
@@ -103,7 +103,7 @@ def _liar_over(world, path, judge=None) -> tuple[int, int]:
         t_liar = liar.update(pred, state, t)
         if t_geo.valid:
             confirmed += 1
-            (judge or safe)(k, t_geo)
+            safe(k, t_geo)
         if t_liar.valid:
             in_water += "water" in check_target(world, *t_liar.position_ned_m[:2], truth)[1]
     return confirmed, in_water
@@ -119,18 +119,13 @@ def test_the_lying_model_gets_no_target_on_garden_pools():
     assert confirmed > 20 and in_water > 0
 
 
-def test_the_lying_model_gets_no_target_centred_on_a_murky_pond():
+def test_the_lying_model_gets_no_target_on_a_murky_pond():
     """An 18 m pond that shows no floor (the country's water), which the liar calls flat ground and lands in:
-    no confirmed target is centred on it. Its edge is not kept clear: with sensor noise the texture check
-    passes on the water, DIS fills its flow in from the bank, and cells up to a few metres inside read as level
-    ground (README, Known limits), so a disc may reach over the water."""
+    no confirmed disc touches it. Its surface's only texture is the camera's noise, so it cannot confirm, not
+    even where DIS fills its flow in from the bank (before the noise-relative texture check, cells a few metres
+    inside read as level ground and discs reached over the water; image_checks)."""
     pond_n, pond_e, half_m = 20.0, 0.0, 9.0
     world = _water_world([(pond_n, pond_e, half_m, half_m)], sim.Style.RURAL)
     path = [(-5.0 + 0.5 * k, 2.0 * math.sin(0.2 * k), -30.0) for k in range(60)]
-
-    def centred_off_the_pond(k, target):
-        n, e = target.position_ned_m[:2]
-        assert max(abs(n - pond_n), abs(e - pond_e)) > half_m, (k, target.position_ned_m)
-
-    confirmed, in_water = _liar_over(world, path, centred_off_the_pond)
-    assert confirmed > 0 and in_water > 0                 # not vacuous: targets confirmed, the liar lands in it
+    confirmed, in_water = _liar_over(world, path)
+    assert confirmed > 20 and in_water > 0                # not vacuous: targets confirmed, the liar lands in it

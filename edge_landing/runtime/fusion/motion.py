@@ -23,7 +23,7 @@ import numpy as np
 
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.fusion.baseline import detectable_heights_m, window_probes
-from edge_landing.runtime.fusion.image_checks import moved_as_posed, predicted_motion_px, textured
+from edge_landing.runtime.fusion.image_checks import moved_as_posed, predicted_motion_px, texture_masks
 from edge_landing.runtime.fusion.image_motion import ImagePose, estimate_translation, plane_prediction_sigma
 from edge_landing.runtime.fusion.keyframes import Keyframe, ground_window, warp_window
 from edge_landing.runtime.fusion.motion_config import (
@@ -302,12 +302,14 @@ class MotionStage:
         wrp = warp_window(ref.grey, hom, window)
         cur = np.ascontiguousarray(grey[rs, cs])
         # No texture, or images that did not move as the poses did, would read as level ground (image_checks).
-        tex = textured(cur, cfg.checks)
+        tex, beyond_noise = texture_masks(cur, cfg.checks)
         if tex.mean() < cfg.checks.min_textured_share:
             self.last_reason = (f"too little texture to measure ({100 * tex.mean():.0f} % of the window): a blank, "
                                 f"dark or saturated image")
             return None
         cur, wrp, rain = self._rain.apply(cur, wrp, time_s)
+        if rain > 0:   # streaks count as texture and as noise alike: the check is made again without them
+            beyond_noise = texture_masks(cur, cfg.checks)[1]
         flow = np.asarray(self._dis.calc(cur, wrp, None))  # type: ignore[call-overload]
         xx, yy = self._pix[0][rs, cs], self._pix[1][rs, cs]
         mx, my = xx + flow[..., 0], yy + flow[..., 1]
@@ -388,9 +390,10 @@ class MotionStage:
         height = np.where(reliable, local, np.nan).astype(np.float32)
         patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)
         rng = np.sqrt(np.sum((ned - pose.position_ned_m[:, None, None]) ** 2, axis=0))
-        # A textureless pixel, like one whose patch is too large, may report an obstacle but not confirm: its
-        # flow is its neighbours' (a smooth wall's face still reads partly high; a blank image reads level).
-        resolved = (patch_px * rng / f <= cfg.max_patch_footprint_m) & tex
+        # A textureless pixel, or one whose texture is only the sensor's noise (murky water), like one whose
+        # patch is too large, may report an obstacle but not confirm: its flow is its neighbours' (a smooth
+        # wall's face still reads partly high; a blank image or a pond next to its bank reads level).
+        resolved = (patch_px * rng / f <= cfg.max_patch_footprint_m) & tex & beyond_noise
         if sweep.verified is not None:   # on a roof's plane, only what matches that plane confirms
             resolved &= sweep.verified
         if cfg.overhang_check_m > 0:   # ground seen under a crown or eaves cannot confirm
