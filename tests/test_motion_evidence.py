@@ -54,8 +54,8 @@ def _result(height: np.ndarray, det: np.ndarray, unexplained: np.ndarray, t: flo
                           10.0, 1.0, np.zeros(6), 0.2, unexplained)
 
 
-def _grid() -> GeometryGrid:
-    return GeometryGrid(0.5, 20.0, 30.0, 0.5)
+def _grid(**kwargs) -> GeometryGrid:
+    return GeometryGrid(0.5, 20.0, 30.0, 0.5, **kwargs)
 
 
 def _cell(grid: GeometryGrid, north: float, east: float) -> tuple[int, int]:
@@ -199,18 +199,15 @@ def test_pairs_that_agree_on_a_filled_surface_do_not_confirm_it_however_many():
     none = np.zeros(shape, bool)
     rng = np.random.default_rng(4)
     grid = _grid()
+    lenient = _grid(max_fusion_gain=2.0)     # not vacuous: with the 2x credit of before, the same pairs confirm it
     cell = _cell(grid, 7.6, 7.6)
     for k in range(40):
         filled = rng.uniform(-0.3, 0.4) + rng.normal(0.0, 0.02, shape)      # one systematic reading per pair
-        grid.add(_result(filled, np.full(shape, 0.9), none, 0.2 * k, sigma=0.9 / 3))
+        for g in (grid, lenient):
+            g.add(_result(filled, np.full(shape, 0.9), none, 0.2 * k, sigma=0.9 / 3))
         view = grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 0.2 * k)
         assert not view.clear[cell], k
     assert float(view.detectable_m[cell]) == pytest.approx(0.6, abs=1e-3)
-    # Not vacuous: with the 2x credit of before, the same pairs confirm the car.
-    lenient = GeometryGrid(0.5, 20.0, 30.0, 0.5, max_fusion_gain=2.0)
-    for k in range(40):
-        filled = rng.uniform(-0.3, 0.4) + rng.normal(0.0, 0.02, shape)
-        lenient.add(_result(filled, np.full(shape, 0.9), none, 0.2 * k, sigma=0.9 / 3))
     assert lenient.view(lenient.north0_m, lenient.east0_m, (lenient.size, lenient.size), 8.0).clear[cell]
 
 
