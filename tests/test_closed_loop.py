@@ -3,6 +3,7 @@
 Real parts everywhere but the autopilot: real MAVLink 2 over loopback UDP (pymavlink), Embree ray casting,
 edge-run as a subprocess with the shipped ONNX model.
 """
+import io
 import math
 import socket
 import threading
@@ -116,6 +117,7 @@ def test_follow_camera_renders_the_pose_the_autopilot_reports():
 def test_runtime_telemetry_at_the_frame_time_is_the_pose_the_camera_rendered():
     """While the vehicle accelerates and turns, edge-run's own telemetry (its link, another port) looked up at
     a frame's capture time gives the pose that frame was rendered from: the stamp is consistent."""
+    from edge_landing.cli.run import wait_for_telemetry
     from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
     from edge_landing.runtime.io.telemetry import TelemetryBuffer
     from tests.autopilot_model import GUIDED
@@ -142,7 +144,11 @@ def test_runtime_telemetry_at_the_frame_time_is_the_pose_the_camera_rendered():
         return rgb
 
     reader.read = read_and_remember
-    grabber = Grabber(SourceConfig.from_string(reader.name), opener=lambda _c: reader, telemetry=telemetry).start()
+    # As edge-run with --mav (cli/run.py): the frames' own poses are not fed into the link's buffer (a frame's
+    # pose added before the link delivered the same sample blocked it as "not newer"), and the first frame is
+    # grabbed once the link has telemetry (before, a frame older than every sample took the first one, 0.16 s later).
+    wait_for_telemetry(telemetry, 5.0, io.StringIO())
+    grabber = Grabber(SourceConfig.from_string(reader.name), opener=lambda _c: reader).start()
     errors = []
     try:
         end = time.monotonic() + 5.0
@@ -162,7 +168,10 @@ def test_runtime_telemetry_at_the_frame_time_is_the_pose_the_camera_rendered():
         thread.join(timeout=10)
     e = np.array(errors)
     assert len(e) >= 20 and e[:, 3].max() > 3.0                           # it flew, fast
-    assert e[:, 0].max() < 0.05 and np.degrees(e[:, 1:3].max()) < 0.1     # same pose: metres, degrees
+    # Same pose. Each side maps the autopilot's clock from one-way stamps of its own socket, which differ by a few
+    # ms under load (up to 9 ms seen at a load of 8 on 2 cores): 5 cm is ~14 ms at 3.6 m/s, 0.5° ~9 ms of the
+    # 1 rad/s yaw; a stamp off by one telemetry period (0.1 s) is 0.36 m and 5.7°.
+    assert e[:, 0].max() < 0.05 and np.degrees(e[:, 1:3].max()) < 0.5
 
 
 def test_precland_estimator_life_cycle():
