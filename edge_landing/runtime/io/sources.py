@@ -13,6 +13,7 @@ from __future__ import annotations
 import glob
 import logging
 import os
+import time
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -23,6 +24,7 @@ import numpy as np
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import VehicleState
+from edge_landing.runtime.io.capture_clock import DriverClock
 
 log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
@@ -147,7 +149,8 @@ class Reader:
 
 
 class VideoReader(Reader):
-    """cv2.VideoCapture over a V4L2 device, a video file or a stream URL."""
+    """cv2.VideoCapture over a V4L2 device, a video file or a stream URL. A device's frames carry the driver's
+    capture time where it is on this clock (``capture_clock.py``); the others are stamped by the grabber."""
 
     def __init__(self, config: SourceConfig):
         import cv2
@@ -157,6 +160,7 @@ class VideoReader(Reader):
         self._expected_frames = 0
         self._read = 0
         self._repeats = RepeatedImage() if config.checks_repeats else None
+        self._clock = DriverClock(config.camera) if config.kind is SourceKind.DEVICE else None
         target: int | str = config.camera
         if config.kind is SourceKind.DEVICE:
             target = int(config.camera) if config.camera.isdigit() else config.camera
@@ -197,9 +201,13 @@ class VideoReader(Reader):
                                 self.name, self._read, self._expected_frames)
                 return None
             raise OSError(f"{self.name}: no frame from the camera")
+        clock_problem = ""
+        if self._clock is not None:
+            self.capture_time_s, clock_problem = self._clock.capture_time_s(self.cap.get(cv2.CAP_PROP_POS_MSEC),
+                                                                            time.monotonic())
         self._read += 1
         repeated = self._repeats.check(bgr) if self._repeats is not None else ""
-        self.problem = grey_fill(bgr) or repeated
+        self.problem = grey_fill(bgr) or repeated or clock_problem
         if bgr.ndim == 2:
             return cv2.cvtColor(bgr, cv2.COLOR_GRAY2RGB)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)

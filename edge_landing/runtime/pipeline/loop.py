@@ -133,17 +133,20 @@ class Pipeline:
         return s
 
     def _process(self, frame: Frame) -> None:
-        """Frame check, telemetry match and inference here; scale, fusion, link, record and log in ``_finish``."""
+        """Frame check, inference and telemetry match here; scale, fusion, link, record and log in ``_finish``.
+
+        The match comes after inference: telemetry measured around the capture time has had the model's time to
+        arrive, so the attitude is interpolated between samples either side more often than held from the newest."""
         times = self.summary.times
         t0 = time.perf_counter()
+        bad = self.frame_check.check(frame) if self.frame_check is not None else ("" if frame.valid else frame.reason)
+        pred = invalid(frame, bad) if bad else self.inference.predict(frame)
+        t1 = time.perf_counter()
         match = TelemetryMatch(None, "")
         if self.telemetry is not None:
             match = self.telemetry.lookup(frame.capture_time_s, time.monotonic())
-        t1 = time.perf_counter()
-        bad = self.frame_check.check(frame) if self.frame_check is not None else ("" if frame.valid else frame.reason)
-        pred = invalid(frame, bad) if bad else self.inference.predict(frame)
-        times.add("telemetry", t1 - t0)
-        times.add("inference", time.perf_counter() - t1)
+        times.add("inference", t1 - t0)
+        times.add("telemetry", time.perf_counter() - t1)
         if not self._fusion_due(frame):
             self.summary.not_fused += 1
             return
