@@ -33,6 +33,7 @@ from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame
+from edge_landing.runtime.io.camera_file import fit_to_frame, load_intrinsics
 from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink, check_url, load_signing_key
 from edge_landing.runtime.io.sources import SourceConfig, SourceKind
@@ -93,6 +94,7 @@ class RunConfig:
     margin_m: float = 1.0
     threads: int = 2
     hfov_deg: float = 90.0
+    intrinsics: Optional[str] = None    # a real camera's calibration (JSON, OpenCV or ROS YAML): replaces hfov_deg
     mount_pitch_deg: float = -45.0
     record: Optional[str] = None
     log_path: Optional[str] = None
@@ -147,6 +149,10 @@ class RunConfig:
                              f"got {self.camera_width}, {self.camera_height}")
         if self.poses and (self.camera == "sim" or self.camera.startswith("sim:")):
             raise InputError("--poses replays a recorded flight's telemetry; the sim camera has its own")
+        if self.intrinsics:
+            if SourceKind.from_string(self.camera) in (SourceKind.SIM, SourceKind.SIM_FOLLOW):
+                raise InputError("--intrinsics describes a real camera's lens; the synthetic camera has its own")
+            load_intrinsics(self.intrinsics)   # a bad file is the one line said, before the model loads
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -162,6 +168,8 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--poses", help="replay a recorded flight's poses.csv (edge-sim --flight) as telemetry, "
                      "one row per frame")
     src.add_argument("--hfov", type=float, default=90.0, help="camera horizontal field of view, degrees")
+    src.add_argument("--intrinsics", help="the camera's calibration instead of --hfov: JSON (fx, fy, cx, cy, dist, "
+                     "width, height), OpenCV FileStorage YAML/XML or ROS camera_info YAML, with lens distortion")
     src.add_argument("--mount-pitch", type=float, default=-45.0, help="camera pitch relative to the body, degrees "
                      "(negative = below the horizon)")
     m = p.add_argument_group("model")
@@ -220,7 +228,8 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      autopilot=Autopilot.from_string(a.autopilot), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
                      mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
                      vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
-                     hfov_deg=a.hfov, mount_pitch_deg=a.mount_pitch, record=a.record, log_path=a.log_path,
+                     hfov_deg=a.hfov, intrinsics=a.intrinsics, mount_pitch_deg=a.mount_pitch, record=a.record,
+                     log_path=a.log_path,
                      max_frames=a.max_frames, duration_s=a.duration, overlap=not a.sequential, fusion_hz=a.fusion_hz,
                      grid=GridMode.from_string(a.grid), obstacle_height_m=a.obstacle_height,
                      allow_unconfirmed=a.allow_unconfirmed)
@@ -247,9 +256,14 @@ def load_inference(cfg: RunConfig, out: Optional[TextIO] = None) -> Union[JointI
 
 
 def camera_geometry(cfg: RunConfig, grabber: Grabber, first: Frame) -> Tuple[Intrinsics, Mount]:
-    """Intrinsics at the frame size and the mount: from the synthetic camera when it knows them, else flags."""
+    """Intrinsics at the frame size and the mount: from the synthetic camera when it knows them, else from
+    --intrinsics (a calibration file) or --hfov, and --mount-pitch."""
     h, w = first.rgb.shape[:2]
     intr = grabber.intrinsics
+    if cfg.intrinsics:
+        intr = fit_to_frame(load_intrinsics(cfg.intrinsics), w, h, cfg.intrinsics)
+        log.info("intrinsics from %s at %dx%d: fx %.1f, fy %.1f, cx %.1f, cy %.1f px, distortion %s", cfg.intrinsics,
+                 w, h, intr.fx, intr.fy, intr.cx, intr.cy, list(intr.dist) or "none")
     intr = intr.scaled(w, h) if intr is not None else Intrinsics.from_hfov(w, h, math.radians(cfg.hfov_deg))
     return intr, grabber.mount or Mount(pitch_rad=math.radians(cfg.mount_pitch_deg))
 
