@@ -60,7 +60,7 @@ def test_ros_camera_info_and_the_projects_own_json_are_read(tmp_path):
     own.write_text(json.dumps(from_ros.to_json()))
     assert load_intrinsics(str(own)) == from_ros                              # round trip, no half-pixel move
     scene = tmp_path / "scene.json"
-    scene.write_text(json.dumps({"frames": 3, "intrinsics": from_ros.to_json()}))
+    scene.write_text(json.dumps({"frame_count": 3, "camera": from_ros.to_json()}))      # as edge-sim writes it
     assert load_intrinsics(str(scene)) == from_ros
 
 

@@ -4,8 +4,9 @@ Motion geometry measures parallax to a fraction of a pixel, so a real lens's dis
 barrel, k1 around -0.3) must be known: read as a pinhole, it bends level ground into false heights towards the
 image's edges. Three formats are read:
 
-- JSON, the project's own (``Intrinsics.to_json``: width, height, fx, fy, cx, cy, dist), at the top level or
-  under ``"intrinsics"`` (a scene folder's ``scene.json``). Pixel-edge convention, like the runtime.
+- JSON, the project's own (``Intrinsics.to_json``: width, height, fx, fy, cx, cy, dist), at the top level,
+  under ``"camera"`` (a scene folder's ``scene.json``) or under ``"intrinsics"``. Pixel-edge convention, like
+  the runtime.
 - OpenCV's FileStorage YAML or XML, as ``cv::calibrateCamera`` tools write it: ``camera_matrix`` (or
   ``cameraMatrix``, ``K``), ``distortion_coefficients`` (or ``dist_coeffs``, ``distCoeffs``, ``D``),
   ``image_width`` and ``image_height``.
@@ -61,8 +62,9 @@ def _from_json(p: Path) -> Intrinsics:
         d = json.loads(p.read_text())
     except (OSError, ValueError) as exc:
         raise InputError(f"--intrinsics {p}: not readable JSON ({exc})") from None
-    if isinstance(d, dict) and isinstance(d.get("intrinsics"), dict):
-        d = d["intrinsics"]
+    for key in ("camera", "intrinsics"):   # a scene folder's scene.json keeps them under "camera"
+        if isinstance(d, dict) and isinstance(d.get(key), dict):
+            d = d[key]
     try:
         return Intrinsics.from_json(d)
     except InputError as exc:
