@@ -178,6 +178,23 @@ def test_flight_writes_a_video_and_descends(tmp_path):
     assert np.array_equal(rgb, Scene(out).read_rgb("000000")) and pose.ned_m == pytest.approx(poses[0].ned_m)
 
 
+def test_a_flight_too_short_for_a_multirotor_says_so(caplog):
+    """The approach covers ~110 m whatever --frames says: 60 frames at 10 frames/s fly it at ~70 m/s, which
+    edge-run refuses as position jumps; the default 200 stay near 20 m/s and say nothing."""
+    import logging
+
+    from edge_landing.sim.flight import peak_speed_mps
+    from edge_landing.sim.generate import vehicle_samples
+
+    world = sim.build_world(sim.Style.SUBURBAN, SEED)
+    with caplog.at_level(logging.WARNING, logger="edge_landing.sim.generate"):
+        short = list(vehicle_samples(sim.SimConfig(out=Path("x"), frames=60, seed=SEED, flight=True), world))
+        assert peak_speed_mps(short) > 40.0 and len(caplog.records) == 1
+        assert "frames or more keep it under 25 m/s" in caplog.records[0].getMessage()
+        usual = list(vehicle_samples(sim.SimConfig(out=Path("x"), frames=200, seed=SEED, flight=True), world))
+    assert peak_speed_mps(usual) < 25.0 and len(caplog.records) == 1
+
+
 def test_sim_camera_reads_frames_with_pose_and_state():
     cam = sim.SimCamera(style="suburban", seed=SEED, width=64, height=48, fps=5.0, flight_frames=4)
     times = []

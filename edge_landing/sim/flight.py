@@ -18,6 +18,7 @@ from .world import World
 
 VIEW_REGION_HALF_M = 150.0
 AGL_RANGE_M = (30.0, 90.0)
+PLAUSIBLE_SPEED_MPS = 25.0   # beyond what a multirotor landing camera flies
 
 
 @dataclass(frozen=True)
@@ -112,3 +113,12 @@ def plan_flight(world: World, rng: np.random.Generator, frames: int, fps: float)
         agl = float(world.surface_z(np.array([pos[0]]), np.array([pos[1]]))[0] - pos[2])
         out.append(VehicleSample(t, np.asarray(pos, np.float64).copy(), att, agl))
     return out
+
+
+def peak_speed_mps(samples: list[VehicleSample]) -> float:
+    """The fastest speed between consecutive samples (0 for fewer than two)."""
+    if len(samples) < 2:
+        return 0.0
+    p = np.array([s.position_ned_m for s in samples])
+    t = np.array([s.t_s for s in samples])
+    return float(np.max(np.linalg.norm(np.diff(p, axis=0), axis=1) / np.maximum(np.diff(t), 1e-9)))

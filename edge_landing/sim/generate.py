@@ -5,6 +5,7 @@ byte-identical files, and frame k does not depend on how many frames come before
 """
 from __future__ import annotations
 
+import logging
 import math
 import shutil
 from dataclasses import dataclass, field, replace
@@ -19,9 +20,11 @@ from edge_landing.runtime.core.errors import InputError, SceneError
 from edge_landing.runtime.core.geometry import HvoThresholds
 
 from .effects import EffectOverrides, Effects, sample_effects
-from .flight import AGL_RANGE_M, VehicleSample, plan_flight, random_view
+from .flight import AGL_RANGE_M, PLAUSIBLE_SPEED_MPS, VehicleSample, peak_speed_mps, plan_flight, random_view
 from .render import Renderer, Rendering
 from .world import WORLD_HALF_SIZE_M, Style, build_world
+
+log = logging.getLogger(__name__)
 
 SIM_VERSION = "1.0.0"
 _PURPOSE_POSE, _PURPOSE_EFFECTS, _PURPOSE_SENSOR, _PURPOSE_FLIGHT = 1, 2, 3, 4
@@ -85,7 +88,16 @@ def pose_of(frame: int, s: VehicleSample) -> Pose:
 def vehicle_samples(config: SimConfig, world) -> Iterator[VehicleSample]:
     """The vehicle pose of each frame, in order."""
     if config.flight:
-        yield from plan_flight(world, frame_rng(config.seed, 0, _PURPOSE_FLIGHT), config.frames, config.fps)
+        samples = plan_flight(world, frame_rng(config.seed, 0, _PURPOSE_FLIGHT), config.frames, config.fps)
+        fastest = peak_speed_mps(samples)
+        if fastest > PLAUSIBLE_SPEED_MPS:
+            # The approach covers ~110 m whatever the frame count: a short flight is a fast one, and edge-run
+            # (over 40 m/s) refuses its telemetry as position jumps.
+            log.warning("this flight reaches %.0f m/s (%d frames at %g frames/s over a ~110 m approach), faster "
+                        "than a multirotor flies; about %d frames or more keep it under %.0f m/s", fastest,
+                        config.frames, config.fps, math.ceil(config.frames * fastest / PLAUSIBLE_SPEED_MPS),
+                        PLAUSIBLE_SPEED_MPS)
+        yield from samples
         return
     for k in range(config.frames):
         rng = frame_rng(config.seed, k, _PURPOSE_POSE)
