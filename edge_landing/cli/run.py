@@ -12,7 +12,6 @@ import argparse
 import contextlib
 import json
 import logging
-import math
 import signal
 import sys
 import time
@@ -29,11 +28,9 @@ from edge_landing.cli.common import (
     output_file,
     run_cli,
 )
-from edge_landing.runtime.core.camera import Intrinsics, Mount
+from edge_landing.cli.run_camera import camera_geometry, check_camera_flags
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
-from edge_landing.runtime.core.messages import Frame
-from edge_landing.runtime.io.camera_file import fit_to_frame, load_intrinsics
 from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink, check_url, load_signing_key
 from edge_landing.runtime.io.sources import SourceConfig, SourceKind
@@ -72,6 +69,7 @@ class RunConfig:
     camera: str = "sim"
     camera_width: int = 0
     camera_height: int = 0
+    camera_delay_s: float = 0.0         # a live camera's latency its time stamps leave out (an RTSP stream's)
     fps: float = 0.0
     loop: bool = False
     poses: Optional[str] = None
@@ -147,12 +145,7 @@ class RunConfig:
         if self.camera_width < 0 or self.camera_height < 0:
             raise InputError(f"--camera-width and --camera-height must be >= 0 (0 = the camera's default), "
                              f"got {self.camera_width}, {self.camera_height}")
-        if self.poses and (self.camera == "sim" or self.camera.startswith("sim:")):
-            raise InputError("--poses replays a recorded flight's telemetry; the sim camera has its own")
-        if self.intrinsics:
-            if SourceKind.from_string(self.camera) in (SourceKind.SIM, SourceKind.SIM_FOLLOW):
-                raise InputError("--intrinsics describes a real camera's lens; the synthetic camera has its own")
-            load_intrinsics(self.intrinsics)   # a bad file is the one line said, before the model loads
+        check_camera_flags(self.camera, self.camera_delay_s, self.intrinsics, self.poses)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -164,6 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--camera-width", type=int, default=0)
     src.add_argument("--camera-height", type=int, default=0)
     src.add_argument("--fps", type=float, default=0.0, help="camera frame rate to ask for (0 = its default)")
+    src.add_argument("--camera-delay", type=float, default=0.0, help="seconds from exposure to a frame's time "
+                     "stamp that the stamp leaves out: an RTSP stream's latency (stamped on arrival), subtracted")
     src.add_argument("--loop", action="store_true", help="repeat a video file or image folder (or the sim flight)")
     src.add_argument("--poses", help="replay a recorded flight's poses.csv (edge-sim --flight) as telemetry, "
                      "one row per frame")
@@ -221,6 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
 def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
     a = build_parser().parse_args(argv)
     return RunConfig(camera=a.camera, camera_width=a.camera_width, camera_height=a.camera_height, fps=a.fps,
+                     camera_delay_s=a.camera_delay,
                      loop=a.loop, poses=a.poses, model=a.model, depth_model=a.depth_model, hvo_model=a.hvo_model,
                      precision=Precision.INT8 if a.int8 else Precision.from_string(a.precision),
                      runtime=RuntimeRequest.from_string(a.runtime),
@@ -253,19 +249,6 @@ def load_inference(cfg: RunConfig, out: Optional[TextIO] = None) -> Union[JointI
         print(f"edge-run: {choice.line()}", file=out or sys.stdout, flush=True)
     models = [OnnxModel.load(c.path, config=SessionConfig(threads=cfg.threads, runtime=c.runtime)) for c in choices]
     return PairInference(models[0], models[1]) if len(models) == 2 else JointInference(models[0])
-
-
-def camera_geometry(cfg: RunConfig, grabber: Grabber, first: Frame) -> Tuple[Intrinsics, Mount]:
-    """Intrinsics at the frame size and the mount: from the synthetic camera when it knows them, else from
-    --intrinsics (a calibration file) or --hfov, and --mount-pitch."""
-    h, w = first.rgb.shape[:2]
-    intr = grabber.intrinsics
-    if cfg.intrinsics:
-        intr = fit_to_frame(load_intrinsics(cfg.intrinsics), w, h, cfg.intrinsics)
-        log.info("intrinsics from %s at %dx%d: fx %.1f, fy %.1f, cx %.1f, cy %.1f px, distortion %s", cfg.intrinsics,
-                 w, h, intr.fx, intr.fy, intr.cx, intr.cy, list(intr.dist) or "none")
-    intr = intr.scaled(w, h) if intr is not None else Intrinsics.from_hfov(w, h, math.radians(cfg.hfov_deg))
-    return intr, grabber.mount or Mount(pitch_rad=math.radians(cfg.mount_pitch_deg))
 
 
 def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> Dict[str, Any]:
@@ -310,7 +293,8 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
     inference = load_inference(cfg, out)
     calibration = load_calibration(cfg.calibration, inference.models[0].sha256) if cfg.calibration else None
     src = SourceConfig(camera=cfg.camera, kind=SourceKind.from_string(cfg.camera), width=cfg.camera_width,
-                       height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "")
+                       height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "",
+                       delay_s=cfg.camera_delay_s)
     fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m,
                               obstacle_height_m=cfg.obstacle_height_m, allow_unconfirmed=cfg.allow_unconfirmed)
     telemetry = TelemetryBuffer()
@@ -339,7 +323,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
             raise InputError(f"camera {cfg.camera} gave no frame within 30 s"
                              + (" (the input is empty or unreadable)" if grabber.ended else ""))
         grabber.put_back(first)
-        intrinsics, mount = camera_geometry(cfg, grabber, first)
+        intrinsics, mount = camera_geometry(grabber, first, cfg.intrinsics, cfg.hfov_deg, cfg.mount_pitch_deg)
         sizes = describe_for_model(inference.models[0], first.rgb.shape[:2], fusion_cfg.working_hw)
         print(f"edge-run: {sizes}", file=out, flush=True)
         fuser = LandingFuser(fusion_cfg, intrinsics, mount)

@@ -21,7 +21,7 @@ from typing import Any, Callable, Optional
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame
-from edge_landing.runtime.io.sources import Reader, SourceConfig, open_reader
+from edge_landing.runtime.io.sources import Reader, SourceConfig, SourceKind, open_reader
 
 log = logging.getLogger(__name__)
 
@@ -155,17 +155,19 @@ class Grabber:
     def _stamp(self, reader: Reader) -> tuple[float, float]:
         """(capture time, clock lag) of the image just read (see Frame.clock_lag_s).
 
-        A reader that knows when its image was taken on this clock (sim-follow: the pose's time) says so. A
+        A reader that knows when its image was taken on this clock (sim-follow: the pose's time, a V4L2 device:
+        the driver's stamp) says so; a live camera's ``delay_s`` is subtracted from that or from its arrival. A
         simulated or replayed flight gives its own time, mapped onto a monotonic base fixed at its first frame,
         so that which frames geometry pairs and what the grids remember depend on the flight only, not on how
         fast it rendered (with wall-clock stamps the default sim run's target count varied between runs). The
         base moves forward only when the flight's time goes back (a replay restarting with --loop)."""
         now = time.monotonic()
+        delay = self.config.delay_s if self.config.kind in (SourceKind.DEVICE, SourceKind.STREAM) else 0.0
         if reader.capture_time_s is not None:
-            return reader.capture_time_s, 0.0
+            return reader.capture_time_s - delay, 0.0
         sim_s = reader.sim_time_s
         if sim_s is None or not math.isfinite(sim_s):
-            return now, 0.0
+            return now - delay, 0.0
         if self._sim_base_s is None or self._sim_base_s + sim_s <= self._last_stamp_s:
             self._sim_base_s = max(now, self._last_stamp_s + 1e-3) - sim_s
         stamp = self._sim_base_s + sim_s

@@ -75,6 +75,9 @@ class SourceConfig:
     reopen_max_s: float = 5.0
     # An image identical to the one before is invalid (None: only for a camera device, see RepeatedImage).
     repeats_invalid: Optional[bool] = None
+    # A live camera's latency that its frames' time stamps do not include (a stream's: RTSP stamps on arrival),
+    # subtracted from them: telemetry is matched to when the image was taken.
+    delay_s: float = 0.0
 
     @property
     def checks_repeats(self) -> bool:
