@@ -22,7 +22,7 @@ def check_camera_flags(camera: str, delay_s: float, intrinsics: Optional[str], p
     if poses and kind is SourceKind.SIM:
         raise InputError("--poses replays a recorded flight's telemetry; the sim camera has its own")
     check_number("--camera-delay", delay_s, 0.0, 2.0, unit="seconds")
-    if delay_s and kind not in (SourceKind.DEVICE, SourceKind.STREAM):
+    if delay_s and not kind.real_camera:
         raise InputError("--camera-delay is a live camera's or stream's latency; this input's frames are stamped "
                          "by the flight or when the pipeline takes them")
     if intrinsics:
@@ -36,10 +36,12 @@ def camera_geometry(grabber: Grabber, first: Frame, intrinsics: Optional[str], h
     """Intrinsics at the frame size and the mount: from the synthetic camera when it knows them, else from
     --intrinsics (a calibration file) or --hfov, and --mount-pitch."""
     h, w = first.rgb.shape[:2]
-    intr = grabber.intrinsics
+    mount = grabber.mount or Mount(pitch_rad=math.radians(mount_pitch_deg))
     if intrinsics:
         intr = fit_to_frame(load_intrinsics(intrinsics), w, h, intrinsics)
         log.info("intrinsics from %s at %dx%d: fx %.1f, fy %.1f, cx %.1f, cy %.1f px, distortion %s", intrinsics,
                  w, h, intr.fx, intr.fy, intr.cx, intr.cy, list(intr.dist) or "none")
-    intr = intr.scaled(w, h) if intr is not None else Intrinsics.from_hfov(w, h, math.radians(hfov_deg))
-    return intr, grabber.mount or Mount(pitch_rad=math.radians(mount_pitch_deg))
+        return intr, mount
+    if grabber.intrinsics is not None:
+        return grabber.intrinsics.scaled(w, h), mount
+    return Intrinsics.from_hfov(w, h, math.radians(hfov_deg)), mount

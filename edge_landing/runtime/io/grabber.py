@@ -21,7 +21,7 @@ from typing import Any, Callable, Optional
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame
-from edge_landing.runtime.io.sources import Reader, SourceConfig, SourceKind, open_reader
+from edge_landing.runtime.io.sources import Reader, SourceConfig, open_reader
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +162,7 @@ class Grabber:
         fast it rendered (with wall-clock stamps the default sim run's target count varied between runs). The
         base moves forward only when the flight's time goes back (a replay restarting with --loop)."""
         now = time.monotonic()
-        delay = self.config.delay_s if self.config.kind in (SourceKind.DEVICE, SourceKind.STREAM) else 0.0
+        delay = self.config.delay_s if self.config.kind.real_camera else 0.0
         if reader.capture_time_s is not None:
             return reader.capture_time_s - delay, 0.0
         sim_s = reader.sim_time_s

@@ -44,6 +44,11 @@ class SourceKind(str, Enum):
         """Live sources run at their own pace, so the grabber drops what the pipeline cannot take."""
         return self in (SourceKind.DEVICE, SourceKind.STREAM, SourceKind.SIM, SourceKind.SIM_FOLLOW)
 
+    @property
+    def real_camera(self) -> bool:
+        """A camera device or a stream: its frames' time is the real world's (a latency may be left out)."""
+        return self in (SourceKind.DEVICE, SourceKind.STREAM)
+
     @classmethod
     def from_string(cls, camera: str) -> SourceKind:
         """Guess the kind from what the user typed for ``--camera``."""
