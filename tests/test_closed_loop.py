@@ -169,7 +169,7 @@ def test_runtime_telemetry_at_the_frame_time_is_the_pose_the_camera_rendered():
     e = np.array(errors)
     assert len(e) >= 20 and e[:, 3].max() > 3.0                           # it flew, fast
     # Same pose. Each side maps the autopilot's clock from one-way stamps of its own socket, which differ by a few
-    # ms under load (up to 9 ms seen at a load of 8 on 2 cores): 5 cm is ~14 ms at 3.6 m/s, 0.5° ~9 ms of the
+    # ms under load (8 ms apart in a probe with four busy loops on 2 cores): 5 cm is ~14 ms at 3.6 m/s, 0.5° ~9 ms of the
     # 1 rad/s yaw; a stamp off by one telemetry period (0.1 s) is 0.36 m and 5.7°.
     assert e[:, 0].max() < 0.05 and np.degrees(e[:, 1:3].max()) < 0.5
 
