@@ -28,9 +28,10 @@ from edge_landing.cli.common import (
     output_file,
     run_cli,
 )
-from edge_landing.cli.run_camera import camera_geometry, check_camera_flags
+from edge_landing.cli.run_camera import camera_geometry, check_camera_flags, check_gimbal
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.io.gimbal import GimbalSeries, GimbalSource
 from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink, check_url, load_signing_key
 from edge_landing.runtime.io.sources import SourceConfig, SourceKind
@@ -94,6 +95,7 @@ class RunConfig:
     hfov_deg: float = 90.0
     intrinsics: Optional[str] = None    # a real camera's calibration (JSON, OpenCV or ROS YAML): replaces hfov_deg
     mount_pitch_deg: float = -45.0
+    gimbal: GimbalSource = GimbalSource.NONE   # mavlink: the camera's orientation as the gimbal reports it, per frame
     record: Optional[str] = None
     log_path: Optional[str] = None
     max_frames: int = 0
@@ -146,6 +148,7 @@ class RunConfig:
             raise InputError(f"--camera-width and --camera-height must be >= 0 (0 = the camera's default), "
                              f"got {self.camera_width}, {self.camera_height}")
         check_camera_flags(self.camera, self.camera_delay_s, self.intrinsics, self.poses)
+        check_gimbal(self.gimbal, self.mav, self.camera, self.poses)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -167,6 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "width, height), OpenCV FileStorage YAML/XML or ROS camera_info YAML, with lens distortion")
     src.add_argument("--mount-pitch", type=float, default=-45.0, help="camera pitch relative to the body, degrees "
                      "(negative = below the horizon)")
+    src.add_argument("--gimbal", default="none", help="mavlink: the camera is on a gimbal whose orientation comes "
+                     "from --mav (GIMBAL_DEVICE_ATTITUDE_STATUS), per frame; none (default): --mount-pitch, fixed")
     m = p.add_argument_group("model")
     m.add_argument("--model", help="joint depth+HVO ONNX model (default: the shipped edgenet)")
     m.add_argument("--precision", default="auto", help="auto (default): the faster on this CPU of the FP32 file and "
@@ -225,6 +230,7 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
                      vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
                      hfov_deg=a.hfov, intrinsics=a.intrinsics, mount_pitch_deg=a.mount_pitch, record=a.record,
+                     gimbal=GimbalSource.from_string(a.gimbal),
                      log_path=a.log_path,
                      max_frames=a.max_frames, duration_s=a.duration, overlap=not a.sequential, fusion_hz=a.fusion_hz,
                      grid=GridMode.from_string(a.grid), obstacle_height_m=a.obstacle_height,
@@ -297,7 +303,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
                        delay_s=cfg.camera_delay_s)
     fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m,
                               obstacle_height_m=cfg.obstacle_height_m, allow_unconfirmed=cfg.allow_unconfirmed)
-    telemetry = TelemetryBuffer()
+    telemetry = TelemetryBuffer(gimbal=GimbalSeries() if cfg.gimbal is GimbalSource.MAVLINK else None)
     # sim-follow renders the autopilot's pose: with --mav the link's telemetry is the drone's (as in flight),
     # without it the frame's own pose is.
     own_telemetry = (src.kind is SourceKind.SIM or bool(cfg.poses)

@@ -10,6 +10,7 @@ from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame
 from edge_landing.runtime.io.camera_file import fit_to_frame, load_intrinsics
+from edge_landing.runtime.io.gimbal import GimbalSource
 from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.sources import SourceKind
 
@@ -29,6 +30,17 @@ def check_camera_flags(camera: str, delay_s: float, intrinsics: Optional[str], p
         if kind in (SourceKind.SIM, SourceKind.SIM_FOLLOW):
             raise InputError("--intrinsics describes a real camera's lens; the synthetic camera has its own")
         load_intrinsics(intrinsics)   # a bad file is the one line said, before the model loads
+
+
+def check_gimbal(gimbal: GimbalSource, mav: Optional[str], camera: str, poses: Optional[str]) -> None:
+    """--gimbal mavlink reads the camera's orientation from the autopilot's link, for the frames it describes."""
+    if gimbal is GimbalSource.NONE:
+        return
+    if not mav:
+        raise InputError("--gimbal mavlink reads the gimbal's reports from the autopilot: it needs --mav")
+    if poses or SourceKind.from_string(camera) is SourceKind.SIM:
+        raise InputError("--gimbal mavlink: this input brings its own poses (the sim camera, --poses), not the "
+                         "autopilot's, so the gimbal's reports would describe another flight")
 
 
 def camera_geometry(grabber: Grabber, first: Frame, intrinsics: Optional[str], hfov_deg: float,

@@ -159,6 +159,19 @@ class Mount:
         r: np.ndarray = rotation_from_euler(self.roll_rad, self.pitch_rad, self.yaw_rad) @ _BODY_FROM_CAMERA_LEVEL
         return r
 
+    @staticmethod
+    def from_body_from_gimbal(r_body_gimbal: np.ndarray) -> Mount:
+        """The mount whose camera FRD axes (x: the optical axis) are ``r_body_gimbal`` (v_body = R @ v_gimbal).
+
+        ZYX angles; at ±90° pitch (a camera looking straight down) roll and yaw turn about one axis, so the turn
+        is all given to yaw: the rotation is the same."""
+        r = np.asarray(r_body_gimbal, dtype=np.float64)
+        pitch = math.asin(max(-1.0, min(1.0, -float(r[2, 0]))))
+        if math.hypot(float(r[0, 0]), float(r[1, 0])) < 1e-9:
+            return Mount(pitch_rad=pitch, roll_rad=0.0, yaw_rad=math.atan2(-float(r[0, 1]), float(r[1, 1])))
+        return Mount(pitch_rad=pitch, roll_rad=math.atan2(float(r[2, 1]), float(r[2, 2])),
+                     yaw_rad=math.atan2(float(r[1, 0]), float(r[0, 0])))
+
 
 @dataclass(frozen=True)
 class Attitude:

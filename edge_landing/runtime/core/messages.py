@@ -10,7 +10,7 @@ from typing import Optional
 
 import numpy as np
 
-from edge_landing.runtime.core.camera import Attitude
+from edge_landing.runtime.core.camera import Attitude, Mount
 
 # Target.evidence prefixes (ARCHITECTURE.md §11).
 EVIDENCE_GEOMETRY = "geometry+network"
@@ -113,6 +113,8 @@ class VehicleState:
     (metres) or None. ``agl_m``: height above ground (rangefinder, or relative altitude over flat terrain) or
     None; ``agl_source`` says which. ``position_epoch`` counts the times the autopilot's local frame moved
     (a position jump, e.g. an EKF reset, or a reboot): NED points of different epochs are not comparable.
+    ``camera_mount``: the camera's mount at this time when a gimbal reports it (``io/gimbal.py``); None: the
+    fixed mount the stages were built with (``mount_of``).
     """
 
     time_s: float
@@ -121,3 +123,20 @@ class VehicleState:
     agl_m: Optional[float] = None
     agl_source: str = ""
     position_epoch: int = 0
+    camera_mount: Optional[Mount] = None
+
+    def mount_of(self, fixed: Mount) -> Mount:
+        """The camera's mount at this time: the gimbal's when reported, else ``fixed``."""
+        return fixed if self.camera_mount is None else self.camera_mount
+
+
+@dataclass(frozen=True)
+class TelemetryMatch:
+    """The vehicle state at a capture time and, when it cannot be trusted, why (``reason`` empty = fresh)."""
+
+    state: Optional[VehicleState]
+    reason: str = ""
+
+    @property
+    def fresh(self) -> bool:
+        return self.state is not None and not self.reason

@@ -75,7 +75,7 @@ def aim_at_pose(point_ned_m: np.ndarray, state: VehicleState, disc_radius_m: flo
     if state.position_ned_m is None:
         return None
     offset = np.asarray(point_ned_m, dtype=np.float64) - np.asarray(state.position_ned_m, dtype=np.float64)
-    return aim_from_offset(offset, state.attitude, disc_radius_m, mount)
+    return aim_from_offset(offset, state.attitude, disc_radius_m, state.camera_mount or mount)
 
 
 def aimed(target: Target, aim: Aim) -> Target:

@@ -125,7 +125,8 @@ class GeometryConfirmation:
             pos = np.full(3, np.nan)                    # the stage estimates it from the images
             if focus is not None and last is not None:  # the window follows the spot (a frame late is fine)
                 focus = focus + last
-        pose = CameraPose.of(self.mount, state.attitude if state else Attitude(), pos, agl)
+        mount = state.mount_of(self.mount) if state else self.mount
+        pose = CameraPose.of(mount, state.attitude if state else Attitude(), pos, agl)
         result = self.motion.update(image, pose, t_cap, focus)
         anchored = position is not None or self.motion.anchored     # in the telemetry's frame
         frame = (POSE_TELEMETRY, 0) if anchored else (POSE_IMAGE, self.motion.odometry_epoch)

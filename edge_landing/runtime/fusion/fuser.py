@@ -210,7 +210,8 @@ class LandingFuser:
             return none(f"no usable depth: {100 * valid_share:.1f}% of pixels valid "
                         f"(need {100 * cfg.min_valid_depth_share:.0f}%)")
 
-        r_nc = ned_from_camera(self.mount, attitude)
+        mount = state.mount_of(self.mount) if state is not None else self.mount   # a gimbal's, when reported
+        r_nc = ned_from_camera(mount, attitude)
         epoch = 0 if state is None else state.position_epoch
         if position is not None and epoch != self._epoch:
             # The autopilot's local frame moved (telemetry.TelemetryBuffer): evidence, keyframes and spots kept
@@ -249,7 +250,7 @@ class LandingFuser:
             confirmed_view = self._confirm.confirmed_view(self._view, hvo_h is not None)
             choice = choose_spot(confirmed_view, here, cfg, self._kept)
             if choice is not None:
-                return self._make_target(pred, choice, attitude, position, hvo_h is not None, timings,
+                return self._make_target(pred, choice, (attitude, mount), position, hvo_h is not None, timings,
                                          self._confirm.evidence())
         self._kept = None
         if proposal is None:
@@ -257,7 +258,7 @@ class LandingFuser:
             return none(f"no safe spot: best clearance {best:.2f} m < required {cfg.required_clearance_m:.2f} m")
         why = self._confirm.unconfirmed_reason(proposal, self._view, confirmed_view)
         if cfg.allow_unconfirmed:
-            target = self._make_target(pred, proposal, attitude, position, hvo_h is not None, timings,
+            target = self._make_target(pred, proposal, (attitude, mount), position, hvo_h is not None, timings,
                                        f"{EVIDENCE_NETWORK_ONLY} ({why})")
             self._kept = None              # an unconfirmed spot never becomes the committed one
             return target
@@ -324,13 +325,13 @@ class LandingFuser:
         offset = (0.0, 0.0, 0.0) if position is None else tuple(float(x) for x in position)
         return self._grid.add(samples[0], samples[1], samples[2], np.take(hor_px, pix), np.take(flat_px, pix), offset)
 
-    def _make_target(self, pred: Prediction, choice: Choice, attitude: Attitude,
+    def _make_target(self, pred: Prediction, choice: Choice, pose: tuple[Attitude, Mount],
                      position: Optional[np.ndarray], have_hvo: bool, timings: dict[str, float],
                      evidence: str = "") -> Target:
         cfg = self.config
         point = np.array([choice.north_m, choice.east_m, choice.down_m], dtype=np.float64)
         rel = point - position if position is not None else point
-        aim = aim_from_offset(rel, attitude, choice.clearance_m, self.mount)
+        aim = aim_from_offset(rel, pose[0], choice.clearance_m, pose[1])
         clear_used = min(choice.clearance_m, cfg.clearance_saturation_m)
         confidence = (clear_used / cfg.clearance_saturation_m) * choice.flat_share
         confidence *= choice.horizontal_share if have_hvo else cfg.depth_only_confidence

@@ -52,7 +52,8 @@ class LinkCounts:
 
     KEYS = ("targets", "heartbeats", "statustext", "received", "send_errors", "reconnects",
             "skipped_px4_no_position", "dropped_old_targets", "dropped_backed_up", "dropped_not_heard",
-            "other_senders", "before_autopilot", "bad_signature", "timesync_requests", "timesync_answers", "noise_bytes")
+            "other_senders", "before_autopilot", "bad_signature", "timesync_requests", "timesync_answers", "noise_bytes",
+            "gimbal_reports")
 
     def __init__(self) -> None:
         self._lock = threading.Lock()

@@ -43,6 +43,7 @@ log = logging.getLogger(__name__)
 FRAME_LOCAL_NED, FRAME_BODY_FRD = 1, 12
 TARGET_TYPE_VISION_OTHER = 3
 TELEMETRY_MESSAGES = ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "LOCAL_POSITION_NED")
+GIMBAL_MESSAGE = "GIMBAL_DEVICE_ATTITUDE_STATUS"   # read only when the telemetry has a gimbal (edge-run --gimbal)
 ESTIMATOR_MESSAGES = ("EKF_STATUS_REPORT", "ESTIMATOR_STATUS")   # ArduPilot's and PX4's, read when sent
 MAV_AUTOPILOT_INVALID = 8
 NOT_A_VEHICLE_TYPES = {6, 18, 26, 27, 30}  # GCS, onboard controller, gimbal, ADSB, camera
@@ -307,6 +308,8 @@ class MavlinkLink:
         interval_us = 1e6 / self.config.telemetry_rate_hz
         # The estimator's status at 2 Hz (each autopilot refuses the other's message id: harmless).
         wanted = [(name, interval_us) for name in TELEMETRY_MESSAGES] + [(name, 5e5) for name in ESTIMATOR_MESSAGES]
+        if self.telemetry.gimbal is not None:
+            wanted.append((GIMBAL_MESSAGE, interval_us))
         for name, interval in wanted:
             msg_id = getattr(m, f"MAVLINK_MSG_ID_{name}")
             self._send(m.MAVLink_command_long_message(self.peer[0], self.peer[1], m.MAV_CMD_SET_MESSAGE_INTERVAL,
@@ -363,6 +366,9 @@ class MavlinkLink:
         if self.peer is None:
             self.counts.add("before_autopilot")
             return
+        if kind == GIMBAL_MESSAGE and sender[0] == self.peer[0]:
+            self._on_gimbal(msg, sender)
+            return
         if sender != self.peer:
             self.counts.add("other_senders")
             return
@@ -389,6 +395,21 @@ class MavlinkLink:
         elif kind == "DISTANCE_SENSOR" and msg.orientation == RANGEFINDER_DOWN:
             t.add_rangefinder(msg.current_distance / 100.0, msg.time_boot_ms, arrival,
                               min_m=msg.min_distance / 100.0, max_m=msg.max_distance / 100.0)
+
+
+    def _on_gimbal(self, msg: Any, sender: Tuple[int, int]) -> None:
+        """A gimbal report from the autopilot's system: the autopilot's own (it reports gimbals it drives, stamped
+        with its clock) or a MAVLink gimbal device's (stamped with the device's clock: timed on arrival instead)."""
+        gimbal = self.telemetry.gimbal
+        if gimbal is None:
+            return
+        arrival = time.monotonic()
+        self.counts.add("gimbal_reports")
+        t = self.telemetry.stamp(msg.time_boot_ms, arrival) if sender == self.peer else arrival
+        if t is None:
+            gimbal.reject("gimbal report without a usable time stamp")
+            return
+        gimbal.add(tuple(msg.q), int(msg.flags), int(msg.failure_flags), t, arrival)
 
 
 def _finite(value: float) -> float:

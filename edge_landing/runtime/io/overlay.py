@@ -147,7 +147,7 @@ class OverlayRecorder:
     def render(self, frame: Frame, pred: Prediction, target: Target, state: Optional[VehicleState],
                grid: Optional[GridView] = None, geometry: Optional[GeometryView] = None) -> np.ndarray:
         img = hvo_colours(frame.rgb, pred.hvo_prob)
-        draw_target(img, target, self.intrinsics, self.mount)
+        draw_target(img, target, self.intrinsics, self.mount if state is None else state.mount_of(self.mount))
         inset = grid_inset(grid, target, state,
                            size_px=min(INSET_PX, img.shape[0] // 2, img.shape[1] // 2), geometry=geometry)
         said = evidence_line(target)

@@ -23,6 +23,7 @@ The link thread calls ``add_*`` as messages arrive; the pipeline asks ``lookup(c
   targets wait ``timesync.first_answer_wait_s`` for the first answer (``timesync.py``).
 - The autopilot's own word: while its estimator status (EKF_STATUS_REPORT, ESTIMATOR_STATUS) says the attitude
   is not usable there is no match; while it says the horizontal position is not usable, states carry none.
+- A gimbal (``gimbal.py``), when given, must report the camera's orientation at the capture time: else no match.
 
 Attitude and position are interpolated between the two samples around the capture time, or taken from the
 nearest one within ``window_s``; anything older is ignored rather than guessed.
@@ -40,8 +41,9 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude
-from edge_landing.runtime.core.messages import VehicleState
+from edge_landing.runtime.core.messages import TelemetryMatch, VehicleState
 from edge_landing.runtime.io.clock_offset import ClockOffset
+from edge_landing.runtime.io.gimbal import GimbalSeries
 from edge_landing.runtime.io.series import TimeSeries
 from edge_landing.runtime.io.timesync import TimeSyncConfig
 
@@ -92,18 +94,6 @@ class TelemetryConfig:
     timesync: TimeSyncConfig = TimeSyncConfig()
 
 
-@dataclass(frozen=True)
-class TelemetryMatch:
-    """The vehicle state at a capture time and, when it cannot be trusted, why (``reason`` empty = fresh)."""
-
-    state: Optional[VehicleState]
-    reason: str = ""
-
-    @property
-    def fresh(self) -> bool:
-        return self.state is not None and not self.reason
-
-
 def _finite(*values: float) -> bool:
     return all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
 
@@ -111,8 +101,8 @@ def _finite(*values: float) -> bool:
 class TelemetryBuffer:
     """Thread-safe store of attitude, local position and height above ground, with counted rejections."""
 
-    def __init__(self, config: TelemetryConfig = TelemetryConfig()):
-        self.config = config
+    def __init__(self, config: TelemetryConfig = TelemetryConfig(), gimbal: Optional[GimbalSeries] = None):
+        self.config, self.gimbal = config, gimbal
         self._lock = threading.Lock()
         self._attitude = TimeSeries(config.history_s, config.max_samples)
         self._position = TimeSeries(config.history_s, config.max_samples)
@@ -131,9 +121,10 @@ class TelemetryBuffer:
 
     # -- intake (link thread) ----------------------------------------------------------------------------
     def rejected(self) -> Dict[str, int]:
-        """Rejected samples by reason (a copy)."""
+        """Rejected samples by reason (a copy), the gimbal's included."""
         with self._lock:
-            return dict(self._rejected)
+            out = dict(self._rejected)
+        return out if self.gimbal is None else {**out, **self.gimbal.rejected()}
 
     def reject(self, reason: str) -> None:
         with self._lock:
@@ -147,6 +138,11 @@ class TelemetryBuffer:
         if remote_ms is None:
             return arrival_s
         return self._clock.map(remote_ms / 1000.0, arrival_s)
+
+    def stamp(self, remote_ms: float, arrival_s: float) -> Optional[float]:
+        """``local_time`` for another message on the autopilot's clock (a gimbal report); None: not timed."""
+        with self._lock:
+            return self.local_time(remote_ms, arrival_s) if _finite(remote_ms) and remote_ms > 0 else None
 
     def _add(self, series: TimeSeries, value: np.ndarray, remote_ms: Optional[float], arrival_s: Optional[float],
              sample_s: Optional[float] = None) -> bool:
@@ -348,9 +344,11 @@ class TelemetryBuffer:
         if att is None:
             return None
         agl, source = _height_above_ground(rng, rel, att)
-        return VehicleState(time_s=capture_time_s, attitude=Attitude(float(att[0]), float(att[1]), float(att[2])),
-                            position_ned_m=None if pos is None else pos.astype(np.float64),
-                            agl_m=agl, agl_source=source, position_epoch=epoch)
+        attitude = Attitude(float(att[0]), float(att[1]), float(att[2]))
+        mount = None if self.gimbal is None else self.gimbal.mount_at(capture_time_s, attitude)[0]
+        return VehicleState(time_s=capture_time_s, attitude=attitude, agl_m=agl, agl_source=source,
+                            position_ned_m=None if pos is None else pos.astype(np.float64), position_epoch=epoch,
+                            camera_mount=mount)
 
     def newest_state(self) -> Optional[VehicleState]:
         """The vehicle state at the newest attitude sample's time (local clock), or None without one."""
@@ -381,7 +379,8 @@ class TelemetryBuffer:
         if state is None:
             late = f" (TIMESYNC: telemetry arrives {delay_s:.1f} s after it was measured)" if delay_s > 0.1 else ""
             return TelemetryMatch(None, f"no telemetry within {self.config.window_s:g} s of the capture time{late}")
-        return TelemetryMatch(state)
+        gimbal_why = "" if self.gimbal is None else self.gimbal.mount_at(capture_time_s, state.attitude, now_s)[1]
+        return TelemetryMatch(None, gimbal_why) if gimbal_why else TelemetryMatch(state)
 
 
 def _height_above_ground(rng: Optional[np.ndarray], rel: Optional[np.ndarray],

@@ -21,10 +21,9 @@ from typing import Optional, TextIO, Tuple
 import numpy as np
 
 from edge_landing.runtime.core.camera import Mount
-from edge_landing.runtime.core.messages import Frame, Prediction, Target, VehicleState
+from edge_landing.runtime.core.messages import Frame, Prediction, Target, TelemetryMatch, VehicleState
 from edge_landing.runtime.core.target_frames import aim_at_pose, aimed, target_ned
 from edge_landing.runtime.fusion.result import FusionResult
-from edge_landing.runtime.io.telemetry import TelemetryMatch
 from edge_landing.runtime.pipeline.protocols import (
     FrameSource,
     FrameWork,

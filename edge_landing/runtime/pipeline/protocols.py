@@ -10,11 +10,10 @@ from typing import Dict, Optional, Protocol, Tuple
 
 import numpy as np
 
-from edge_landing.runtime.core.messages import Frame, Prediction, Target, VehicleState
+from edge_landing.runtime.core.messages import Frame, Prediction, Target, TelemetryMatch, VehicleState
 from edge_landing.runtime.fusion.grid import GridView
 from edge_landing.runtime.fusion.motion_grid import GeometryView
 from edge_landing.runtime.fusion.result import FusionResult
-from edge_landing.runtime.io.telemetry import TelemetryMatch
 
 
 class FrameSource(Protocol):

@@ -33,7 +33,8 @@ def decision_record(target: Target, pred: Prediction, state: Optional[VehicleSta
     is "geometry+network" (confirmed by the drone's own motion) or "network only" (--allow-unconfirmed), with
     the baseline and detectable obstacle height of the spot's geometry cell; ``tracked_ned_m`` is the
     network's unconfirmed spot on a frame that sent none;
-    ``committed_ned_m`` is the committed spot after this frame (local NED; None when there is none)."""
+    ``committed_ned_m`` is the committed spot after this frame (local NED; None when there is none);
+    ``gimbal_mount_deg`` the mount a gimbal reported for the frame (None: the fixed mount)."""
     def vec(v: Optional[Any]) -> Optional[List[float]]:
         return None if v is None else [round(float(x), 4) for x in v]
 
@@ -43,11 +44,17 @@ def decision_record(target: Target, pred: Prediction, state: Optional[VehicleSta
             "confidence": _num(target.confidence), "scale": _num(pred.scale), "scale_source": scale_source,
             "telemetry": state is not None, "agl_m": None if state is None else state.agl_m,
             "level_assumed": level_assumed, "sent": sent, "not_sent_because": "" if sent else why,
-            "committed_ned_m": vec(committed_ned_m),
+            "committed_ned_m": vec(committed_ned_m), "gimbal_mount_deg": _mount_deg(state),
             # Which evidence vouched for the spot and the motion-geometry figures of its cell (§11).
             "evidence": target.evidence, "geometry_baseline_m": _num(target.geometry_baseline_m),
             "geometry_detectable_m": _num(target.geometry_detectable_m),
             "geometry_age_s": _num(target.geometry_age_s), "tracked_ned_m": vec(target.tracked_ned_m)}
+
+
+def _mount_deg(state: Optional[VehicleState]) -> Optional[List[float]]:
+    """The camera's mount (roll, pitch, yaw relative to the body, degrees) a gimbal reported for the frame."""
+    m = None if state is None else state.camera_mount
+    return None if m is None else [round(math.degrees(a), 3) for a in (m.roll_rad, m.pitch_rad, m.yaw_rad)]
 
 
 def _num(v: Optional[float]) -> Optional[float]:

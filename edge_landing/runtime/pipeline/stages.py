@@ -133,7 +133,7 @@ class ScaleStage:
         if self.estimator is not None and self.intrinsics is not None and self.mount is not None and not why:
             assert state is not None and state.agl_m is not None
             h, w = pred.depth_m.shape
-            est = self.estimator.update(pred.depth_m, pred.hvo_prob, self.intrinsics.scaled(w, h), self.mount,
+            est = self.estimator.update(pred.depth_m, pred.hvo_prob, self.intrinsics.scaled(w, h), state.mount_of(self.mount),
                                         state.attitude, state.agl_m)
             self.last_reason = why = est.reason
             if est.valid and math.isfinite(est.scale) and est.scale > 0:
