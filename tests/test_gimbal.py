@@ -162,3 +162,13 @@ def test_fusion_places_the_ground_with_the_gimbal_and_misplaces_it_with_the_fixe
     fixed = LandingFuser(cfg, intr, Mount()).update(prediction(render), VehicleState(0.0, VEHICLE, position))
     # Read with the body-fixed mount, the same depth lands 12° off: the ground comes out tilted or misplaced.
     assert not fixed.valid or float(np.linalg.norm(fixed.position_ned_m - gimballed.position_ned_m)) > 3.0
+
+
+def test_only_the_first_gimbal_heard_is_read():
+    """A second camera's gimbal on the same system would be mixed into the first one's orientation."""
+    series = GimbalSeries()
+    assert series.add(quat(0, -45, 0), 0, 0, sample_s=1.0, arrival_s=1.0, device=(154, 0))
+    assert not series.add(quat(0, -90, 0), 0, 0, sample_s=1.1, arrival_s=1.1, device=(1, 2))
+    assert series.add(quat(0, -45, 0), 0, 0, sample_s=1.2, arrival_s=1.2, device=(154, 0))
+    assert series.rejected() == {"another gimbal's report": 1}
+    assert not series.add(quat(0, -45, 0), 0, 0, sample_s=None, arrival_s=1.3, device=(154, 0))

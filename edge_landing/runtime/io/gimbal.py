@@ -16,12 +16,13 @@ without a mount gets no telemetry match, so nothing is placed or sent from an or
 """
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
-from typing import Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -31,6 +32,7 @@ from edge_landing.runtime.io.series import TimeSeries
 
 __all__ = ["GimbalConfig", "GimbalSeries", "GimbalSource", "mount_from_gimbal", "rotation_from_quaternion",
            "FLAG_RETRACT", "FLAG_YAW_LOCK", "FLAG_YAW_IN_VEHICLE_FRAME", "FLAG_YAW_IN_EARTH_FRAME"]
+log = logging.getLogger(__name__)
 # GIMBAL_DEVICE_FLAGS (MAVLink common.xml)
 FLAG_RETRACT, FLAG_YAW_LOCK, FLAG_YAW_IN_VEHICLE_FRAME, FLAG_YAW_IN_EARTH_FRAME = 1, 16, 32, 64
 
@@ -66,10 +68,11 @@ def rotation_from_quaternion(w: float, x: float, y: float, z: float) -> np.ndarr
     ], dtype=np.float64)
 
 
-def mount_from_gimbal(q_wxyz: np.ndarray, yaw_in_earth_frame: bool, attitude: Attitude) -> Mount:
-    """The mount (body <- camera) of a camera whose gimbal reports ``q_wxyz`` while the vehicle holds ``attitude``."""
+def mount_from_gimbal(q_wxyz: np.ndarray, earth_frame: bool, attitude: Attitude) -> Mount:
+    """The mount (body <- camera) of a camera whose gimbal reports ``q_wxyz`` (yaw from north when
+    ``earth_frame``, else from the heading) while the vehicle holds ``attitude``."""
     q = np.asarray(q_wxyz, dtype=np.float64)
-    ref = np.eye(3) if yaw_in_earth_frame else rot_z(attitude.yaw_rad)
+    ref = np.eye(3) if earth_frame else rot_z(attitude.yaw_rad)
     ned_from_gimbal = ref @ rotation_from_quaternion(*(q / np.linalg.norm(q)))
     return Mount.from_body_from_gimbal(attitude.ned_from_body().T @ ned_from_gimbal)
 
@@ -91,6 +94,7 @@ class GimbalSeries:
         self._lock = threading.Lock()
         self._series = TimeSeries(config.history_s, config.max_samples)
         self._earth: Optional[bool] = None          # the frame of the samples kept
+        self.device: Optional[Tuple[int, int]] = None   # (component, gimbal_device_id) of the one gimbal read
         self._rejected: Counter[str] = Counter()
         self.samples = 0
 
@@ -98,17 +102,19 @@ class GimbalSeries:
         with self._lock:
             return dict(self._rejected)
 
-    def reject(self, reason: str) -> None:
-        with self._lock:
-            self._rejected[reason] += 1
-
-    def add(self, q_wxyz: Tuple[float, float, float, float], flags: int, failure_flags: int, sample_s: float,
-            arrival_s: Optional[float] = None) -> bool:
-        """One report, ``sample_s`` on the local monotonic clock. Never raises; False (and counted) when refused."""
+    def add(self, q_wxyz: Tuple[float, float, float, float], flags: int, failure_flags: int,
+            sample_s: Optional[float], arrival_s: Optional[float] = None, device: Tuple[int, int] = (0, 0)) -> bool:
+        """One report, ``sample_s`` on the local monotonic clock (None: its time stamp could not be mapped). Only
+        the first ``device`` heard is read: a second camera's reports would be mixed in. Never raises; False (and
+        counted) when refused."""
         arrival = time.monotonic() if arrival_s is None else arrival_s
         with self._lock:
-            why = self._refuse(q_wxyz, flags, failure_flags, sample_s)
-            if why:
+            if self.device is None:
+                self.device = device
+                log.info("gimbal found: component %d, device %d; other gimbals' reports are ignored", *device)
+            why = "another gimbal's report" if device != self.device else self._refuse(
+                q_wxyz, flags, failure_flags, sample_s)
+            if why or sample_s is None:
                 self._rejected[why] += 1
                 return False
             q = np.asarray(q_wxyz, dtype=np.float64)
@@ -125,10 +131,22 @@ class GimbalSeries:
             self.samples += 1
             return True
 
+    def add_report(self, msg: Any, sender: Tuple[int, int], from_autopilot: bool,
+                   stamp: Callable[[float, float], Optional[float]]) -> bool:
+        """A GIMBAL_DEVICE_ATTITUDE_STATUS from the autopilot's system. The autopilot's own reports (it reports the
+        gimbals it drives) are on its clock: ``stamp`` maps them as telemetry. A gimbal device's are on the
+        device's clock, unknown here: timed on arrival."""
+        arrival = time.monotonic()
+        sample_s = stamp(msg.time_boot_ms, arrival) if from_autopilot else arrival
+        device = (sender[1], int(getattr(msg, "gimbal_device_id", 0) or 0))
+        return self.add(tuple(msg.q), int(msg.flags), int(msg.failure_flags), sample_s, arrival, device)
+
     def _refuse(self, q_wxyz: Tuple[float, float, float, float], flags: int, failure_flags: int,
-                sample_s: float) -> str:
+                sample_s: Optional[float]) -> str:
+        if sample_s is None or not math.isfinite(sample_s):
+            return "gimbal report without a usable time stamp"
         values = [float(v) for v in q_wxyz]
-        if len(values) != 4 or not all(math.isfinite(v) for v in values) or not math.isfinite(sample_s):
+        if len(values) != 4 or not all(math.isfinite(v) for v in values):
             return "gimbal quaternion not finite"
         if abs(math.sqrt(sum(v * v for v in values)) - 1.0) > self.config.unit_tolerance:
             return "gimbal quaternion not of unit length"

@@ -366,8 +366,10 @@ class MavlinkLink:
         if self.peer is None:
             self.counts.add("before_autopilot")
             return
-        if kind == GIMBAL_MESSAGE and sender[0] == self.peer[0]:
-            self._on_gimbal(msg, sender)
+        if kind == GIMBAL_MESSAGE and sender[0] == self.peer[0]:   # the autopilot's or a gimbal device's
+            gimbal = self.telemetry.gimbal
+            if gimbal is not None and gimbal.add_report(msg, sender, sender == self.peer, self.telemetry.stamp):
+                self.counts.add("gimbal_reports")
             return
         if sender != self.peer:
             self.counts.add("other_senders")
@@ -396,20 +398,6 @@ class MavlinkLink:
             t.add_rangefinder(msg.current_distance / 100.0, msg.time_boot_ms, arrival,
                               min_m=msg.min_distance / 100.0, max_m=msg.max_distance / 100.0)
 
-
-    def _on_gimbal(self, msg: Any, sender: Tuple[int, int]) -> None:
-        """A gimbal report from the autopilot's system: the autopilot's own (it reports gimbals it drives, stamped
-        with its clock) or a MAVLink gimbal device's (stamped with the device's clock: timed on arrival instead)."""
-        gimbal = self.telemetry.gimbal
-        if gimbal is None:
-            return
-        arrival = time.monotonic()
-        self.counts.add("gimbal_reports")
-        t = self.telemetry.stamp(msg.time_boot_ms, arrival) if sender == self.peer else arrival
-        if t is None:
-            gimbal.reject("gimbal report without a usable time stamp")
-            return
-        gimbal.add(tuple(msg.q), int(msg.flags), int(msg.failure_flags), t, arrival)
 
 
 def _finite(value: float) -> float:
