@@ -66,6 +66,9 @@ class ModelConfig:
     accel_ms2: float = 3.0
     yaw_rate_rad_s: float = 1.0
     max_tilt_rad: float = math.radians(20)
+    # A stabilised gimbal holding the camera at this pitch below the horizon, yaw with the heading, reported as
+    # ArduPilot reports the gimbals it drives (GIMBAL_DEVICE_ATTITUDE_STATUS from the autopilot, its clock).
+    gimbal_pitch_deg: Optional[float] = None
 
 
 class PrecLand:
@@ -166,6 +169,13 @@ class AutopilotModel:
         healthy = (m.EKF_ATTITUDE | m.EKF_VELOCITY_HORIZ | m.EKF_VELOCITY_VERT | m.EKF_POS_HORIZ_REL
                    | m.EKF_POS_HORIZ_ABS | m.EKF_POS_VERT_ABS | m.EKF_PRED_POS_HORIZ_REL | m.EKF_PRED_POS_HORIZ_ABS)
         self._send_all(m.MAVLink_ekf_status_report_message(healthy, 0.05, 0.05, 0.05, 0.05, 0.0))
+        if self.cfg.gimbal_pitch_deg is not None:
+            half = math.radians(self.cfg.gimbal_pitch_deg) / 2.0    # (w, x, y, z) of a pitch alone
+            flags = (m.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME | m.GIMBAL_DEVICE_FLAGS_ROLL_LOCK
+                     | m.GIMBAL_DEVICE_FLAGS_PITCH_LOCK)
+            self._send_all(m.MAVLink_gimbal_device_attitude_status_message(
+                0, 0, t, flags, [math.cos(half), 0.0, math.sin(half), 0.0], math.nan, math.nan, math.nan, 0,
+                math.nan, math.nan, 0))
 
     # -- MAVLink in -----------------------------------------------------------------------------------
     def receive(self, now_s: float) -> None:
@@ -352,8 +362,11 @@ def main(argv: Optional[List[str]] = None) -> None:
     p.add_argument("--out", action="append", required=True, help="udpout:HOST:PORT of a peer (repeat)")
     p.add_argument("--plnd-lag", type=float, default=0.1)
     p.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0: after the landing)")
+    p.add_argument("--gimbal-pitch", type=float, default=None, help="report a stabilised gimbal at this pitch "
+                   "(degrees, negative = below the horizon)")
     a = p.parse_args(argv)
-    AutopilotModel(ModelConfig(a.style, a.seed, tuple(a.out), plnd_lag_s=a.plnd_lag)).run(a.duration)
+    AutopilotModel(ModelConfig(a.style, a.seed, tuple(a.out), plnd_lag_s=a.plnd_lag,
+                               gimbal_pitch_deg=a.gimbal_pitch)).run(a.duration)
 
 
 if __name__ == "__main__":

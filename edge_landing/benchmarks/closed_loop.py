@@ -53,6 +53,7 @@ MODEL_CMD = ("{python} -m tests.autopilot_model --style {style} --seed {seed} --
 
 
 MAX_START_M = 1000.0
+GIMBAL_CHOICES = ("none", "mavlink", "unread")
 
 
 def edge_args(text: str) -> List[str]:
@@ -108,6 +109,9 @@ class LoopConfig:
     hold_s: float = 20.0            # edge-run --hold (its default; the clock stops while over the spot)
     threads: int = 1                # edge-run --threads (ONNX Runtime)
     edge_args: str = ""             # more edge-run flags, e.g. "--int8"
+    # none: the camera is fixed to the body; mavlink: on a stabilised gimbal the autopilot reports and edge-run
+    # reads (--gimbal mavlink); unread: on that gimbal, but edge-run assumes the fixed mount (a misconfiguration).
+    gimbal: str = "none"
 
     def __post_init__(self) -> None:
         from edge_landing.sim.world import Style
@@ -129,6 +133,8 @@ class LoopConfig:
         check_number("--hold", self.hold_s, 0.0, 3600.0, unit="seconds")
         check_threads("--threads", self.threads)
         edge_args(self.edge_args)
+        if self.gimbal not in GIMBAL_CHOICES:
+            raise InputError(f"--gimbal must be one of {', '.join(GIMBAL_CHOICES)}, got {self.gimbal!r}")
         if self.sitl_cmd:
             sitl_argv(self)
 
@@ -317,8 +323,10 @@ def land_once(cfg: LoopConfig) -> LandingResult:
     try:
         if cfg.sitl_cmd:
             sitl = _start(sitl_argv(cfg), logs.enter_context(open(out / "autopilot.log", "w")))
+        on_gimbal = "" if cfg.gimbal == "none" else ":gimbal"
+        read_gimbal = ["--gimbal", "mavlink"] if cfg.gimbal == "mavlink" else []
         edge = _start([sys.executable, "-m", "edge_landing.cli.run", "--camera",
-                       f"sim-follow:{cfg.style}:{cfg.seed}@{cfg.url(2)}", "--mav", cfg.url(1),
+                       f"sim-follow:{cfg.style}:{cfg.seed}{on_gimbal}@{cfg.url(2)}", "--mav", cfg.url(1), *read_gimbal,
                        "--autopilot", cfg.autopilot.value, "--log", str(out / "targets.jsonl"),
                        "--vehicle-radius", str(cfg.vehicle_radius_m), "--margin", str(cfg.margin_m),
                        "--hold", str(cfg.hold_s), "--threads", str(cfg.threads), *edge_args(cfg.edge_args)],
@@ -434,6 +442,9 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--hold", type=float, default=20.0, help="edge-run --hold (s, default 20)")
     p.add_argument("--threads", type=int, default=1, help="edge-run --threads (default 1)")
     p.add_argument("--edge-args", default="", help="more edge-run flags, quoted")
+    p.add_argument("--gimbal", default="none", help="none: camera fixed to the body; mavlink: on a stabilised "
+                   "gimbal (45° below the horizon) the autopilot reports, read by edge-run; unread: on that gimbal, "
+                   "edge-run not told (the autopilot model reports it; a SITL needs its own mount set up)")
     p.add_argument("--runs", type=int, default=0, help="N landings from random starts (styles alternate)")
     p.add_argument("--seeds", default="200-219", help="world seeds for --runs (default 200-219: no test uses them)")
     a = p.parse_args(argv)
@@ -442,13 +453,13 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
         if not Path("tests/autopilot_model.py").is_file():
             raise InputError("--autopilot-model needs a source checkout: run from the repository root "
                              "(tests/autopilot_model.py not found)")
-        sitl_cmd = MODEL_CMD
+        sitl_cmd = MODEL_CMD + (" --gimbal-pitch -45" if a.gimbal != "none" else "")
     if a.runs < 0:
         raise InputError(f"--runs must be >= 0 (0: one landing from --start), got {a.runs}")
     seeds = parse_seeds(a.seeds) if a.runs else []
     cfg = LoopConfig(a.style, a.seed, a.out, a.base_port, Autopilot.from_string(a.autopilot), sitl_cmd, a.altitude,
                      a.start[0], a.start[1], a.start[2], a.vehicle_radius, a.margin, hold_s=a.hold, threads=a.threads,
-                     edge_args=a.edge_args)
+                     edge_args=a.edge_args, gimbal=a.gimbal)
     output_folder(cfg.out, "the --out folder")
     if a.runs:
         summary = run_many(cfg, a.runs, seeds)

@@ -34,11 +34,15 @@ def check_camera_flags(camera: str, delay_s: float, intrinsics: Optional[str], p
 
 def check_gimbal(gimbal: GimbalSource, mav: Optional[str], camera: str, poses: Optional[str]) -> None:
     """--gimbal mavlink reads the camera's orientation from the autopilot's link, for the frames it describes."""
+    kind = SourceKind.from_string(camera)
+    if kind is SourceKind.SIM_FOLLOW and "gimbal" in camera.partition("@")[0].split(":") and not mav:
+        raise InputError("--camera sim-follow:...:gimbal: a gimballed camera's orientation comes from the "
+                         "autopilot's reports, so it needs --mav (and --gimbal mavlink to read them)")
     if gimbal is GimbalSource.NONE:
         return
     if not mav:
         raise InputError("--gimbal mavlink reads the gimbal's reports from the autopilot: it needs --mav")
-    if poses or SourceKind.from_string(camera) is SourceKind.SIM:
+    if poses or kind is SourceKind.SIM:
         raise InputError("--gimbal mavlink: this input brings its own poses (the sim camera, --poses), not the "
                          "autopilot's, so the gimbal's reports would describe another flight")
 

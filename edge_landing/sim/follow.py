@@ -238,19 +238,22 @@ class FollowSpec:
     style: Style = Style.SUBURBAN
     seed: int = 0
     pose_url: str = DEFAULT_POSE_URL
+    gimbal: bool = False        # the camera is stabilised: the mount's pitch below the horizon, yaw with the heading
 
     @staticmethod
     def parse(camera: str) -> FollowSpec:
-        """``sim-follow[:STYLE[:SEED]][@URL]``."""
+        """``sim-follow[:STYLE[:SEED]][:gimbal][@URL]``."""
         head, _, url = camera.partition("@")
         parts = head.split(":")[1:]
-        style, seed = Style.SUBURBAN, 0
+        style, seed, gimbal = Style.SUBURBAN, 0, False
         for part in parts:
             if part.isdigit():
                 seed = int(part)
+            elif part == "gimbal":
+                gimbal = True
             elif part:
                 style = Style.from_string(part)
-        return FollowSpec(style, seed, url or DEFAULT_POSE_URL)
+        return FollowSpec(style, seed, url or DEFAULT_POSE_URL, gimbal)
 
 
 class FollowReader(Reader):
@@ -275,7 +278,8 @@ class FollowReader(Reader):
         self.period_s = 1.0 / (config.fps or 10.0)
         self.provider: PoseProvider = provider or MavlinkPoseProvider(spec.pose_url)
         self.rangefinder = rangefinder
-        self.name = f"sim-follow:{spec.style.value}:{spec.seed}@{spec.pose_url}"
+        self.gimbal = spec.gimbal
+        self.name = f"sim-follow:{spec.style.value}:{spec.seed}{':gimbal' if spec.gimbal else ''}@{spec.pose_url}"
         self.capture_time_s: Optional[float] = None
         self.last_pose: Optional[PoseSample] = None
         self._next_s = time.monotonic()
@@ -289,7 +293,10 @@ class FollowReader(Reader):
         self._next_s = max(self._next_s + self.period_s, time.monotonic())
         pose = self._wait_for_pose()
         world_ned = self.home_world_ned_m + pose.position_ned_m
-        rgb = self.renderer.render(world_ned, pose.attitude, self.effects, self._noise).rgb
+        # On a gimbal the camera keeps its pitch to the horizon while the vehicle tilts: as a fixed mount on a
+        # level vehicle with the same heading.
+        att = Attitude(0.0, 0.0, pose.attitude.yaw_rad) if self.gimbal else pose.attitude
+        rgb = self.renderer.render(world_ned, att, self.effects, self._noise).rgb
         agl_m = height_above_ground_m(self.world, world_ned)
         if self.rangefinder:
             self.provider.send_rangefinder(agl_m)
