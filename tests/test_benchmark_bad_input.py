@@ -104,6 +104,7 @@ def test_landing_truth(capsys, tmp_path, argv, expected):
     (["--start", "0", "0", "inf"], "--start YAW_DEG"),
     (["--style", "bogus"], "--style"),
     (["--altitude", "nan"], "--altitude"),
+    (["--gimbal", "bogus"], "--gimbal"),
 ])
 def test_closed_loop(capsys, tmp_path, argv, expected):
     one_line_error(capsys, closed_loop.main, ["--out", tmp_path / "loop", *argv], expected)

@@ -96,6 +96,7 @@ def test_without_the_gimbal_the_same_flight_misplaces_the_ground(assets, tmp_pat
     (["--gimbal", "mavlink"], "needs --mav"),
     (["--gimbal", "mavlink", "--mav", "udpout:127.0.0.1:14550", "--camera", "sim"], "its own poses"),
     (["--gimbal", "bogus"], "gimbal source"),
+    (["--camera", "sim-follow:suburban:3:gimbal"], "needs --mav"),
 ])
 def test_gimbal_flag_refusals_are_one_line(capsys, argv, expected):
     one_line_error(capsys, main, argv, "--gimbal" if "bogus" not in argv else "bogus", expected)
