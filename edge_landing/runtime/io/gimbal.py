@@ -161,17 +161,24 @@ class GimbalSeries:
     def mount_at(self, capture_time_s: float, attitude: Attitude,
                  now_s: Optional[float] = None) -> Tuple[Optional[Mount], str]:
         """The camera's mount at a capture time, or (None, why not); freshness is judged only with ``now_s``."""
+        with self._lock:
+            q, earth = self._series.at(capture_time_s, self.config.window_s), bool(self._earth)
+        why = "" if q is not None and now_s is None else self.why_not(capture_time_s, now_s)
+        if why or q is None:    # (q None with no reason: a report arrived between the two reads)
+            return None, why or f"no gimbal attitude within {self.config.window_s:g} s of the capture time"
+        return mount_from_gimbal(q, earth, attitude), ""
+
+    def why_not(self, capture_time_s: float, now_s: Optional[float] = None) -> str:
+        """'' when a report covers the capture time (and, with ``now_s``, the newest is fresh), else why not; no
+        rotation is computed (``TelemetryBuffer.lookup`` asks this of the state ``state_at`` already built)."""
         c = self.config
         with self._lock:
             last = self._series.last_arrival_s
-            q = self._series.at(capture_time_s, c.window_s)
-            earth = bool(self._earth)
-            rejected = dict(self._rejected)
+            covered = self._series.at(capture_time_s, c.window_s) is not None
+            rejected = dict(self._rejected) if last == -math.inf else {}
         if last == -math.inf:
             detail = f" ({sum(rejected.values())} rejected: {max(rejected, key=rejected.__getitem__)})" if rejected else ""
-            return None, "no gimbal attitude" + detail
+            return "no gimbal attitude" + detail
         if now_s is not None and now_s - last > c.fresh_s:
-            return None, f"gimbal attitude stale: last report {now_s - last:.2f} s ago"
-        if q is None:
-            return None, f"no gimbal attitude within {c.window_s:g} s of the capture time"
-        return mount_from_gimbal(q, earth, attitude), ""
+            return f"gimbal attitude stale: last report {now_s - last:.2f} s ago"
+        return "" if covered else f"no gimbal attitude within {c.window_s:g} s of the capture time"

@@ -399,6 +399,5 @@ class MavlinkLink:
                               min_m=msg.min_distance / 100.0, max_m=msg.max_distance / 100.0)
 
 
-
 def _finite(value: float) -> float:
     return float(value) if math.isfinite(value) else 0.0

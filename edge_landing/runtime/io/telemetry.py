@@ -379,7 +379,7 @@ class TelemetryBuffer:
         if state is None:
             late = f" (TIMESYNC: telemetry arrives {delay_s:.1f} s after it was measured)" if delay_s > 0.1 else ""
             return TelemetryMatch(None, f"no telemetry within {self.config.window_s:g} s of the capture time{late}")
-        gimbal_why = "" if self.gimbal is None else self.gimbal.mount_at(capture_time_s, state.attitude, now_s)[1]
+        gimbal_why = "" if self.gimbal is None else self.gimbal.why_not(capture_time_s, now_s)
         return TelemetryMatch(None, gimbal_why) if gimbal_why else TelemetryMatch(state)
 
 
