@@ -35,18 +35,20 @@ from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: 
     open_connection,
     unsent_bytes,
 )
-from edge_landing.runtime.io.telemetry import RANGEFINDER_DOWN, TelemetryBuffer
+from edge_landing.runtime.io.telemetry import TelemetryBuffer
+from edge_landing.runtime.io.telemetry_feed import (  # noqa: F401  (TELEMETRY_MESSAGES re-exported)
+    ESTIMATOR_MESSAGES,
+    GIMBAL_MESSAGE,
+    TELEMETRY_MESSAGES,
+    feed_telemetry,
+    is_autopilot_heartbeat,
+)
 
 __all__ = ["Autopilot", "LinkConfig", "LinkCounts", "MavlinkLink", "check_url", "load_mavutil", "load_signing_key",
            "NET_PREFIXES", "FRAME_BODY_FRD", "FRAME_LOCAL_NED", "TELEMETRY_MESSAGES"]
 log = logging.getLogger(__name__)
 FRAME_LOCAL_NED, FRAME_BODY_FRD = 1, 12
 TARGET_TYPE_VISION_OTHER = 3
-TELEMETRY_MESSAGES = ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "LOCAL_POSITION_NED")
-GIMBAL_MESSAGE = "GIMBAL_DEVICE_ATTITUDE_STATUS"   # read only when the telemetry has a gimbal (edge-run --gimbal)
-ESTIMATOR_MESSAGES = ("EKF_STATUS_REPORT", "ESTIMATOR_STATUS")   # ArduPilot's and PX4's, read when sent
-MAV_AUTOPILOT_INVALID = 8
-NOT_A_VEHICLE_TYPES = {6, 18, 26, 27, 30}  # GCS, onboard controller, gimbal, ADSB, camera
 
 
 class MavlinkLink:
@@ -348,7 +350,7 @@ class MavlinkLink:
 
     def _choose_peer(self, msg: Any, sender: Tuple[int, int]) -> None:
         """The first autopilot-type HEARTBEAT (of ``target_system`` when given) names the one autopilot."""
-        if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in NOT_A_VEHICLE_TYPES:
+        if not is_autopilot_heartbeat(msg):
             return
         if self.config.target_system is not None and sender[0] != self.config.target_system:
             return
@@ -376,27 +378,11 @@ class MavlinkLink:
             return
         arrival = time.monotonic()
         self._last_heard_s = arrival
-        t = self.telemetry
         if kind == "TIMESYNC":
             self._on_timesync(msg, arrival)
             return
-        if kind in ESTIMATOR_MESSAGES:
-            m = self._mavutil.mavlink
-            glitch = m.EKF_GPS_GLITCHING if kind == "EKF_STATUS_REPORT" else m.ESTIMATOR_GPS_GLITCH
-            t.add_estimator_status(int(msg.flags), arrival, glitch)
-            return
-        if kind not in TELEMETRY_MESSAGES:
-            return
-        self._last_telemetry_s = arrival
-        if kind == "ATTITUDE":
-            t.add_attitude(msg.roll, msg.pitch, msg.yaw, msg.time_boot_ms, arrival)
-        elif kind == "LOCAL_POSITION_NED":
-            t.add_position(msg.x, msg.y, msg.z, msg.time_boot_ms, arrival)
-        elif kind == "GLOBAL_POSITION_INT":
-            t.add_relative_alt(msg.relative_alt / 1000.0, msg.time_boot_ms, arrival)
-        elif kind == "DISTANCE_SENSOR" and msg.orientation == RANGEFINDER_DOWN:
-            t.add_rangefinder(msg.current_distance / 100.0, msg.time_boot_ms, arrival,
-                              min_m=msg.min_distance / 100.0, max_m=msg.max_distance / 100.0)
+        if feed_telemetry(self.telemetry, msg, arrival, self._mavutil.mavlink) == "telemetry":
+            self._last_telemetry_s = arrival
 
 
 def _finite(value: float) -> float:

@@ -1,0 +1,49 @@
+"""Which MAVLink messages are the vehicle's telemetry, and how each enters a TelemetryBuffer (ARCHITECTURE.md §12).
+
+One rule for the live link (``mavlink_link.py``) and for a recorded telemetry log replayed beside its video
+(``tlog.py``): the same messages, the same fields and units, the same trust checks in the buffer.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from edge_landing.runtime.io.telemetry import RANGEFINDER_DOWN, TelemetryBuffer
+
+__all__ = ["TELEMETRY_MESSAGES", "ESTIMATOR_MESSAGES", "GIMBAL_MESSAGE", "MAV_AUTOPILOT_INVALID",
+           "NOT_A_VEHICLE_TYPES", "is_autopilot_heartbeat", "feed_telemetry"]
+
+TELEMETRY_MESSAGES = ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "LOCAL_POSITION_NED")
+GIMBAL_MESSAGE = "GIMBAL_DEVICE_ATTITUDE_STATUS"   # read only when the telemetry has a gimbal (edge-run --gimbal)
+ESTIMATOR_MESSAGES = ("EKF_STATUS_REPORT", "ESTIMATOR_STATUS")   # ArduPilot's and PX4's, read when sent
+MAV_AUTOPILOT_INVALID = 8
+NOT_A_VEHICLE_TYPES = {6, 18, 26, 27, 30}  # GCS, onboard controller, gimbal, ADSB, camera
+
+
+def is_autopilot_heartbeat(msg: Any) -> bool:
+    """A HEARTBEAT from a vehicle's autopilot (not a ground station, companion, gimbal, camera or ADS-B)."""
+    return msg.get_type() == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID \
+        and msg.type not in NOT_A_VEHICLE_TYPES
+
+
+def feed_telemetry(telemetry: TelemetryBuffer, msg: Any, arrival_s: float, mavlink: Any) -> str:
+    """Hand one message from the autopilot to ``telemetry``, arrived at ``arrival_s`` (local monotonic seconds).
+
+    Returns "telemetry" for a pose or height message, "estimator" for an estimator status, "" for anything
+    else (TIMESYNC and gimbal reports have their own paths). ``mavlink``: pymavlink's dialect module."""
+    kind = msg.get_type()
+    if kind in ESTIMATOR_MESSAGES:
+        glitch = mavlink.EKF_GPS_GLITCHING if kind == "EKF_STATUS_REPORT" else mavlink.ESTIMATOR_GPS_GLITCH
+        telemetry.add_estimator_status(int(msg.flags), arrival_s, glitch)
+        return "estimator"
+    if kind not in TELEMETRY_MESSAGES:
+        return ""
+    if kind == "ATTITUDE":
+        telemetry.add_attitude(msg.roll, msg.pitch, msg.yaw, msg.time_boot_ms, arrival_s)
+    elif kind == "LOCAL_POSITION_NED":
+        telemetry.add_position(msg.x, msg.y, msg.z, msg.time_boot_ms, arrival_s)
+    elif kind == "GLOBAL_POSITION_INT":
+        telemetry.add_relative_alt(msg.relative_alt / 1000.0, msg.time_boot_ms, arrival_s)
+    elif kind == "DISTANCE_SENSOR" and msg.orientation == RANGEFINDER_DOWN:
+        telemetry.add_rangefinder(msg.current_distance / 100.0, msg.time_boot_ms, arrival_s,
+                                  min_m=msg.min_distance / 100.0, max_m=msg.max_distance / 100.0)
+    return "telemetry"
