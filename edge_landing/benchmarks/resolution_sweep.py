@@ -123,7 +123,7 @@ def fly(config: SweepConfig, style: str, seed: int, width: int, height: int, mod
     from edge_landing.benchmarks.landing_truth import TruthConfig, check_target
     from edge_landing.runtime.core.camera import Intrinsics, Mount
     from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
-    from edge_landing.runtime.io.sources import PoseReplayReader
+    from edge_landing.runtime.io.replay import PoseReplayReader
     from edge_landing.runtime.models import default_model_path
     from edge_landing.runtime.perception.inference import OnnxModel
     from edge_landing.runtime.perception.input_fit import describe_for_model

@@ -3,6 +3,7 @@
     edge-run                                        # the built-in synthetic flight, shipped model, prints targets
     edge-run --camera /dev/video0 --mav udpout:127.0.0.1:14550 --autopilot ardupilot
     edge-run --camera flight.mp4 --model edgenet.onnx --precision fp32 --record overlay.mp4 --log targets.jsonl
+    edge-run --camera flight.mp4 --tlog flight.tlog --tlog-video-start 2026-11-24T10:00:03.2Z --log targets.jsonl
 
 Ctrl-C stops cleanly: the summary is printed and every file is flushed.
 """
@@ -28,7 +29,14 @@ from edge_landing.cli.common import (
     output_file,
     run_cli,
 )
-from edge_landing.cli.run_camera import camera_geometry, check_camera_flags, check_gimbal
+from edge_landing.cli.run_camera import (
+    add_camera_arguments,
+    camera_geometry,
+    check_camera_flags,
+    check_gimbal,
+    check_tlog,
+    tlog_config,
+)
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.io.gimbal import GimbalSeries, GimbalSource
@@ -74,6 +82,8 @@ class RunConfig:
     fps: float = 0.0
     loop: bool = False
     poses: Optional[str] = None
+    tlog: Optional[str] = None                 # the flight's MAVLink telemetry log, replayed beside the video
+    tlog_video_start: Optional[str] = None     # when the video's first frame was taken, on the log's clock
     model: Optional[str] = None
     depth_model: Optional[str] = None
     hvo_model: Optional[str] = None
@@ -148,30 +158,14 @@ class RunConfig:
             raise InputError(f"--camera-width and --camera-height must be >= 0 (0 = the camera's default), "
                              f"got {self.camera_width}, {self.camera_height}")
         check_camera_flags(self.camera, self.camera_delay_s, self.intrinsics, self.poses)
-        check_gimbal(self.gimbal, self.mav, self.camera, self.poses)
+        check_tlog(self.camera, self.tlog, self.tlog_video_start, self.poses, self.loop, self.mav_target_system)
+        check_gimbal(self.gimbal, self.mav, self.camera, self.poses or self.tlog)
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = CliParser(prog="edge-run", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
-    src = p.add_argument_group("camera")
-    src.add_argument("--camera", default="sim", help="/dev/videoN or index, video file, image folder or glob, "
-                     "rtsp://... or GStreamer pipeline, or 'sim' (default: the built-in synthetic flight)")
-    src.add_argument("--camera-width", type=int, default=0)
-    src.add_argument("--camera-height", type=int, default=0)
-    src.add_argument("--fps", type=float, default=0.0, help="camera frame rate to ask for (0 = its default)")
-    src.add_argument("--camera-delay", type=float, default=0.0, help="seconds from exposure to a frame's time "
-                     "stamp that the stamp leaves out: an RTSP stream's latency (stamped on arrival), subtracted")
-    src.add_argument("--loop", action="store_true", help="repeat a video file or image folder (or the sim flight)")
-    src.add_argument("--poses", help="replay a recorded flight's poses.csv (edge-sim --flight) as telemetry, "
-                     "one row per frame")
-    src.add_argument("--hfov", type=float, default=90.0, help="camera horizontal field of view, degrees")
-    src.add_argument("--intrinsics", help="the camera's calibration instead of --hfov: JSON (fx, fy, cx, cy, dist, "
-                     "width, height), OpenCV FileStorage YAML/XML or ROS camera_info YAML, with lens distortion")
-    src.add_argument("--mount-pitch", type=float, default=-45.0, help="camera pitch relative to the body, degrees "
-                     "(negative = below the horizon)")
-    src.add_argument("--gimbal", default="none", help="mavlink: the camera is on a gimbal whose orientation comes "
-                     "from --mav (GIMBAL_DEVICE_ATTITUDE_STATUS), per frame; none (default): --mount-pitch, fixed")
+    add_camera_arguments(p)
     m = p.add_argument_group("model")
     m.add_argument("--model", help="joint depth+HVO ONNX model (default: the shipped edgenet)")
     m.add_argument("--precision", default="auto", help="auto (default): the faster on this CPU of the FP32 file and "
@@ -221,8 +215,8 @@ def build_parser() -> argparse.ArgumentParser:
 def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
     a = build_parser().parse_args(argv)
     return RunConfig(camera=a.camera, camera_width=a.camera_width, camera_height=a.camera_height, fps=a.fps,
-                     camera_delay_s=a.camera_delay,
-                     loop=a.loop, poses=a.poses, model=a.model, depth_model=a.depth_model, hvo_model=a.hvo_model,
+                     camera_delay_s=a.camera_delay, loop=a.loop, poses=a.poses, tlog=a.tlog,
+                     tlog_video_start=a.tlog_video_start, model=a.model, depth_model=a.depth_model, hvo_model=a.hvo_model,
                      precision=Precision.INT8 if a.int8 else Precision.from_string(a.precision),
                      runtime=RuntimeRequest.from_string(a.runtime),
                      calibration=a.calibration, altitude_scale=not a.no_altitude_scale, mav=a.mav,
@@ -269,7 +263,7 @@ def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> Dict[str
             elif part:
                 style = part
     return run_record(__version__, cfg.camera, kind.value, style, seed, cfg.poses, model_name,
-                      cfg.autopilot.value if cfg.mav else None)
+                      cfg.autopilot.value if cfg.mav else None, tlog=cfg.tlog)
 
 
 def wait_for_telemetry(telemetry: TelemetryBuffer, wait_s: float, out: TextIO) -> None:
@@ -300,13 +294,13 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
     calibration = load_calibration(cfg.calibration, inference.models[0].sha256) if cfg.calibration else None
     src = SourceConfig(camera=cfg.camera, kind=SourceKind.from_string(cfg.camera), width=cfg.camera_width,
                        height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "",
-                       delay_s=cfg.camera_delay_s)
+                       delay_s=cfg.camera_delay_s, tlog=tlog_config(cfg.tlog, cfg.tlog_video_start, cfg.mav_target_system))
     fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m,
                               obstacle_height_m=cfg.obstacle_height_m, allow_unconfirmed=cfg.allow_unconfirmed)
     telemetry = TelemetryBuffer(gimbal=GimbalSeries() if cfg.gimbal is GimbalSource.MAVLINK else None)
     # sim-follow renders the autopilot's pose: with --mav the link's telemetry is the drone's (as in flight),
     # without it the frame's own pose is.
-    own_telemetry = (src.kind is SourceKind.SIM or bool(cfg.poses)
+    own_telemetry = (src.kind is SourceKind.SIM or bool(cfg.poses) or bool(cfg.tlog)
                      or (src.kind is SourceKind.SIM_FOLLOW and not cfg.mav))
     link = None
     with contextlib.ExitStack() as stack:
@@ -319,7 +313,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
             stack.callback(link.stop)
             if own_telemetry:  # said once the link is up, not before a bad --mav is refused
                 log.info("%s: using its own telemetry; the autopilot's is not used",
-                         "sim camera" if src.kind is SourceKind.SIM else "--poses replay")
+                         "sim camera" if src.kind is SourceKind.SIM else "--tlog replay" if cfg.tlog else "--poses replay")
             if not own_telemetry and cfg.telemetry_wait_s > 0:
                 wait_for_telemetry(telemetry, cfg.telemetry_wait_s, out)
         grabber = Grabber(src, telemetry=telemetry if own_telemetry else None).start()
@@ -385,6 +379,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
                                {"the shipped model": shipped, "the shipped INT8 model": shipped.with_suffix(".int8.onnx"),
                                 "--model": cfg.model, "--depth-model": cfg.depth_model, "--hvo-model": cfg.hvo_model,
                                 "--calibration": cfg.calibration, "--mav-key": cfg.mav_key, "--poses": cfg.poses,
+                                "--tlog": cfg.tlog,
                                 "--camera": camera})
     return run(cfg)
 

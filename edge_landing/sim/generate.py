@@ -128,7 +128,7 @@ def _prepare_folder(config: SimConfig) -> None:
                              f"pass --overwrite to replace it or choose a new folder")
         for s in stale:
             shutil.rmtree(out / s)
-        for f in ("poses.csv", "scene.json", "flight.mp4", "preview.png"):
+        for f in ("poses.csv", "scene.json", "flight.mp4", "flight.tlog", "preview.png"):
             if (out / f).exists() and config.overwrite:
                 (out / f).unlink()
 
@@ -173,7 +173,7 @@ def generate(config: SimConfig, progress: bool = True) -> Path:
 
         renderer.palette = sample_palette(frame_rng(config.seed, 0, _PURPOSE_PALETTE))
     video = _open_video(out / "flight.mp4", config) if config.flight else None
-    per_frame = []
+    per_frame, poses = [], []
     try:
         samples = vehicle_samples(config, world)
         for k, sample in enumerate(tqdm(samples, total=config.frames, desc=f"edge-sim {config.style}",
@@ -187,7 +187,8 @@ def generate(config: SimConfig, progress: bool = True) -> Path:
 
                 look = sample_look(frame_rng(config.seed, k, _PURPOSE_LOOK))
                 rgb, record["look"] = apply_look(rgb, look, frame_rng(config.seed, k, _PURPOSE_LOOK + 100)), look.to_json()
-            writer.write(k, rgb, g.depth_m, g.hvo, g.normals if config.write_normals else None, pose_of(k, sample))
+            poses.append(pose_of(k, sample))
+            writer.write(k, rgb, g.depth_m, g.hvo, g.normals if config.write_normals else None, poses[-1])
             per_frame.append(record)
             if video is not None:
                 import cv2
@@ -196,8 +197,12 @@ def generate(config: SimConfig, progress: bool = True) -> Path:
     finally:
         if video is not None:
             video.release()
-        writer.meta = SceneMeta(meta.intrinsics, meta.mount, thresholds,
-                                generator=generator_record(config, world, per_frame))
+        record = generator_record(config, world, per_frame)
+        if video is not None and poses:   # the telemetry log a ground station would have kept (sim.tlog_writer)
+            from .tlog_writer import write_flight_tlog
+
+            record["tlog"] = write_flight_tlog(out / "flight.tlog", poses, config.seed)
+        writer.meta = SceneMeta(meta.intrinsics, meta.mount, thresholds, generator=record)
         writer.close()
     if config.preview:
         from .preview import write_contact_sheet

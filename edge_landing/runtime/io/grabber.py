@@ -130,10 +130,8 @@ class Grabber:
             stamp_s, lag_s = self._stamp(reader)
             frame = Frame(self._next_id, stamp_s, rgb, self.config.camera, valid=not problem, reason=problem,
                           clock_lag_s=lag_s)
-            state = reader.last_state
-            if state is not None and self.telemetry is not None:
-                # Sampled at the frame's (flight) time, arrived now: freshness stays on the monotonic clock.
-                self.telemetry.add_state(state, frame.capture_time_s, arrival_s=time.monotonic())
+            if self.telemetry is not None:
+                reader.feed_telemetry(self.telemetry, frame.capture_time_s)
             self._publish(frame)
             self._next_id += 1
         with self._cond:

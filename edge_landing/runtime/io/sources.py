@@ -76,6 +76,7 @@ class SourceConfig:
     fps: float = 0.0
     loop: bool = False
     poses_csv: str = ""  # replay a recorded flight's poses.csv as telemetry, one row per frame
+    tlog: Optional[Any] = None   # a tlog.TlogConfig: replay the flight's MAVLink telemetry log beside its video
     reopen_min_s: float = 0.5
     reopen_max_s: float = 5.0
     # An image identical to the one before is invalid (None: only for a camera device, see RepeatedImage).
@@ -154,6 +155,13 @@ class Reader:
 
     def close(self) -> None:
         pass
+
+    def feed_telemetry(self, telemetry: Any, capture_time_s: float) -> None:
+        """Give ``telemetry`` (a TelemetryBuffer) what this source knows of the vehicle up to the image just
+        read, stamped ``capture_time_s`` on the grabber's clock: a simulated or pose-replayed frame's state."""
+        if self.last_state is not None:
+            # Sampled and arrived at the frame's time: freshness is judged on the frame's clock (Frame.clock_lag_s).
+            telemetry.add_state(self.last_state, capture_time_s, arrival_s=capture_time_s)
 
 
 class VideoReader(Reader):
@@ -325,43 +333,6 @@ class SimReader(Reader):
         self.camera.close()
 
 
-class PoseReplayReader(Reader):
-    """A recorded input replayed with its ground-truth poses (an ``edge-sim --flight`` poses.csv) as telemetry.
-
-    Row k of the file describes frame k of the input; ``last_state`` is that frame's vehicle state, which the
-    grabber stamps with the frame's capture time. Frames past the end of the file get no state.
-    """
-
-    def __init__(self, inner: Reader, states: List[VehicleState]):
-        self.inner, self.states = inner, states
-        self.name = inner.name
-        self._index = 0
-
-    @staticmethod
-    def states_from_csv(path: str) -> List[VehicleState]:
-        from edge_landing.runtime.core.camera import Attitude
-        from edge_landing.runtime.io.poses import read_poses_csv
-
-        poses = read_poses_csv(path)
-        if not poses:
-            raise InputError(f"--poses {path} has no rows: a replay needs one pose per frame")
-        return [VehicleState(time_s=p.t_s, attitude=Attitude(p.roll_rad, p.pitch_rad, p.yaw_rad),
-                             position_ned_m=np.asarray(p.ned_m, dtype=np.float64), agl_m=p.agl_m,
-                             agl_source="poses.csv") for p in poses]
-
-    def read(self) -> Optional[np.ndarray]:
-        rgb = self.inner.read()
-        self.problem = self.inner.problem
-        if rgb is not None:
-            self.last_state = self.states[self._index] if self._index < len(self.states) else None
-            self.sim_time_s = None if self.last_state is None else self.last_state.time_s
-            self._index += 1
-        return rgb
-
-    def close(self) -> None:
-        self.inner.close()
-
-
 def open_reader(config: SourceConfig) -> Reader:
     if config.kind is SourceKind.FOLDER:
         reader: Reader = ImageFolderReader(config)
@@ -371,12 +342,18 @@ def open_reader(config: SourceConfig) -> Reader:
         return open_follow_reader(config)
     else:
         reader = VideoReader(config)
-    if config.poses_csv:
-        try:
+    try:
+        if config.poses_csv:
+            from edge_landing.runtime.io.replay import PoseReplayReader
+
             return PoseReplayReader(reader, PoseReplayReader.states_from_csv(config.poses_csv))
-        except Exception:
-            reader.close()
-            raise
+        if config.tlog is not None:
+            from edge_landing.runtime.io.replay import TlogReplayReader
+
+            return TlogReplayReader(reader, config.tlog, config.fps)
+    except Exception:
+        reader.close()
+        raise
     return reader
 
 

@@ -83,6 +83,7 @@ class Pipeline:
         self._queue: queue.Queue[Optional[FrameWork]] = queue.Queue(maxsize=1)
         self._worker: Optional[threading.Thread] = None
         self._last_fused_s: Optional[float] = None
+        self._clock_lag_s = 0.0                 # the newest frame's Frame.clock_lag_s (its clock against ours)
 
     def stop(self, why: str = "request") -> None:
         self.summary.stopped_by = self.summary.stopped_by or why
@@ -138,12 +139,15 @@ class Pipeline:
         arrive, so the attitude is interpolated between samples either side more often than held from the newest."""
         times = self.summary.times
         t0 = time.perf_counter()
+        self._clock_lag_s = frame.clock_lag_s
         bad = self.frame_check.check(frame) if self.frame_check is not None else ("" if frame.valid else frame.reason)
         pred = invalid(frame, bad) if bad else self.inference.predict(frame)
         t1 = time.perf_counter()
         match = TelemetryMatch(None, "")
         if self.telemetry is not None:
-            match = self.telemetry.lookup(frame.capture_time_s, time.monotonic())
+            # Freshness is an age rule: judged on the frame's clock (Frame.clock_lag_s; 0 for a camera), so a
+            # replayed telemetry log is as fresh as it was in flight however slowly the replay runs.
+            match = self.telemetry.lookup(frame.capture_time_s, time.monotonic() - frame.clock_lag_s)
         times.add("inference", t1 - t0)
         times.add("telemetry", time.perf_counter() - t1)
         if not self._fusion_due(frame):
@@ -219,7 +223,7 @@ class Pipeline:
             self._announce_telemetry(match)
             if said:
                 self.link.send_status(said[:50], severity=4)
-            target = self._recheck(target)
+            target = self._recheck(target, frame.clock_lag_s)
             target, pose_time_s = self._at_newest_pose(target, match.state)
             sent, why = self.link.send_target(target, match.state, clock_lag_s=frame.clock_lag_s)
             if sent:
@@ -243,11 +247,12 @@ class Pipeline:
                                      committed_ned_m=None if spot is None else spot.ned_m)
             self.decision_log.write(json.dumps(record) + "\n")
 
-    def _recheck(self, target: Target) -> Target:
-        """Right before sending: telemetry must still be fresh (fusion took time since the match)."""
+    def _recheck(self, target: Target, clock_lag_s: float) -> Target:
+        """Right before sending: telemetry must still be fresh (fusion took time since the match); judged on the
+        frame's clock (Frame.clock_lag_s)."""
         if self.telemetry is None or not target.valid:
             return target
-        age = time.monotonic() - self.telemetry.last_arrival_s()
+        age = time.monotonic() - clock_lag_s - self.telemetry.last_arrival_s()
         if age <= self.options.fresh_s:
             return target
         return Target.none(target.frame_id, target.capture_time_s,
@@ -317,7 +322,7 @@ class Pipeline:
             parts.append(f"{stage} {p50:.0f}/{p99:.0f} ms")
         parts.append(f"drops {self.grabber.drops}")
         if self.telemetry is not None:
-            age = time.monotonic() - self.telemetry.last_arrival_s()
+            age = time.monotonic() - self._clock_lag_s - self.telemetry.last_arrival_s()
             parts.append(f"telemetry {'ok' if age <= self.options.fresh_s else 'STALE'}")
         if self.link is not None:
             parts.append(f"link {'up' if self.link.up else 'DOWN'} sent {s.sent}")

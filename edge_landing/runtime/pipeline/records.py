@@ -8,10 +8,11 @@ from edge_landing.runtime.core.messages import Prediction, Target, VehicleState
 
 
 def run_record(version: str, camera: str, source_kind: str, sim_style: Optional[str], sim_seed: Optional[int],
-               poses: Optional[str], model: str, autopilot: Optional[str]) -> Dict[str, Any]:
+               poses: Optional[str], model: str, autopilot: Optional[str], tlog: Optional[str] = None
+               ) -> Dict[str, Any]:
     """The first line of ``--log``: where the run's frames came from (benchmarks/landing_truth.py reads it)."""
     return {"run": {"version": version, "camera": camera, "source_kind": source_kind, "sim_style": sim_style,
-                    "sim_seed": sim_seed, "poses": poses, "model": model, "autopilot": autopilot}}
+                    "sim_seed": sim_seed, "poses": poses, "tlog": tlog, "model": model, "autopilot": autopilot}}
 
 
 def describe_target(target: Optional[Target]) -> str:
