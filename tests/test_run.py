@@ -118,23 +118,27 @@ def test_model_without_contract_is_one_line(assets, tmp_path, capsys):
     assert len(err) == 1 and "no model contract" in err[0]
 
 
-def test_sigint_exits_cleanly_with_summary_and_flushed_log(assets, tmp_path):
-    log_path = tmp_path / "t.jsonl"
+@pytest.mark.parametrize("sig, said", [(signal.SIGINT, "Ctrl-C"), (signal.SIGTERM, "SIGTERM")])
+def test_a_stop_signal_exits_cleanly_with_summary_flushed_log_and_playable_overlay(assets, tmp_path, sig, said):
+    """Ctrl-C, or SIGTERM as systemd sends it to a service: the run ends as at the end of its input."""
+    log_path, rec = tmp_path / "t.jsonl", tmp_path / "overlay.mp4"
     env = dict(os.environ, PYTHONPATH=str(REPO))
     proc = subprocess.Popen([sys.executable, "-m", "edge_landing.cli.run", "--camera", assets["video"], "--loop",
-                             "--model", assets["model"], "--log", str(log_path), "--threads", "1"],
+                             "--model", assets["model"], "--log", str(log_path), "--record", str(rec),
+                             "--threads", "1"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=str(tmp_path))
     try:
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and (not log_path.exists() or log_path.stat().st_size < 2000):
             time.sleep(0.1)
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         out, err = proc.communicate(timeout=20)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0, err
-    assert "stopped by Ctrl-C" in out and "pipeline images/s" in out
+    assert f"stopped by {said}" in out and "pipeline images/s" in out
+    assert cv2.VideoCapture(str(rec)).read()[0]          # the overlay's container was closed: it plays
     lines = log_path.read_text().splitlines()
     assert "run" in json.loads(lines[0])  # the run record, then one line per frame
     lines = lines[1:]

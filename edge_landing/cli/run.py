@@ -5,7 +5,7 @@
     edge-run --camera flight.mp4 --model edgenet.onnx --precision fp32 --record overlay.mp4 --log targets.jsonl
     edge-run --camera flight.mp4 --tlog flight.tlog --tlog-video-start 2026-11-24T10:00:03.2Z --log targets.jsonl
 
-Ctrl-C stops cleanly: the summary is printed and every file is flushed.
+Ctrl-C or SIGTERM (systemd stopping the service) stops cleanly: the summary is printed and every file is flushed.
 """
 from __future__ import annotations
 
@@ -349,9 +349,11 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
         print(f"edge-run: {cfg.camera} -> {inference.name} -> "
               f"{cfg.mav + ' (' + cfg.autopilot.value + ')' if cfg.mav else 'no MAVLink'}; "
               f"need clearance {fusion_cfg.required_clearance_m:.1f} m; Ctrl-C to stop", file=out, flush=True)
-        previous = signal.getsignal(signal.SIGINT)
-        signal.signal(signal.SIGINT, lambda *_: pipeline.stop("Ctrl-C"))
-        stack.callback(signal.signal, signal.SIGINT, previous)
+        # Ctrl-C, and SIGTERM (systemd or a supervisor stopping the service): stop cleanly, so the log, the overlay
+        # video and the summary are complete; Python's default for SIGTERM would end the process mid-write.
+        for sig, why in ((signal.SIGINT, "Ctrl-C"), (signal.SIGTERM, "SIGTERM")):
+            stack.callback(signal.signal, sig, signal.getsignal(sig))
+            signal.signal(sig, lambda *_, why=why: pipeline.stop(why))
         summary = pipeline.run()
     print(summary.table(), file=out, flush=True)
     print(sizes, file=out, flush=True)
