@@ -5,6 +5,7 @@ and read back through pymavlink's own log reader; the telemetry then passes the 
 from __future__ import annotations
 
 import json
+import math
 import struct
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.io.tlog import TlogConfig, TlogTelemetry, parse_video_start
 from edge_landing.sim.tlog_writer import LOG_START_UNIX_S, PREROLL_S, write_flight_tlog
 from tests.run_helpers import flat_assets, read_decisions
+from tests.test_gimbal import quat
 
 LOCAL_VIDEO_START_S = 1000.0     # where the tests put the video's first frame on the local clock
 
@@ -53,10 +55,13 @@ def write_tlog(path: Path, packets: list) -> Path:
     return path
 
 
-def hand_made_log(path: Path, ekf_flags: int, end_s: float = 3.0) -> Path:
-    """An ArduPilot-like autopilot at 20 Hz for ``end_s`` seconds from LOG_START_UNIX_S, hovering 10 m up."""
+def hand_made_log(path: Path, ekf_flags: int, end_s: float = 3.0, pitch_rad: float = 0.0,
+                  gimbal_pitch_deg: float | None = None) -> Path:
+    """An ArduPilot-like autopilot at 20 Hz for ``end_s`` seconds from LOG_START_UNIX_S, hovering 10 m up, pitched
+    ``pitch_rad``; with ``gimbal_pitch_deg`` it also reports the gimbal it drives (that far below the horizon)."""
     m = load_mavutil().mavlink
     ap = (1, 1)
+    tilt = 1.0 / np.cos(pitch_rad)
     packets = []
     for j in range(int(end_s * 20) + 1):
         t = j / 20
@@ -65,9 +70,13 @@ def hand_made_log(path: Path, ekf_flags: int, end_s: float = 3.0) -> Path:
         if j % 20 == 0:
             packets.append((arrival, m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA,
                                                                  0, 0, m.MAV_STATE_ACTIVE, 3), ap))
-        packets.append((arrival, m.MAVLink_attitude_message(ms, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), ap))
+        packets.append((arrival, m.MAVLink_attitude_message(ms, 0.0, pitch_rad, 0.0, 0.0, 0.0, 0.0), ap))
         packets.append((arrival, m.MAVLink_local_position_ned_message(ms, 0.0, 0.0, -10.0, 0.0, 0.0, 0.0), ap))
-        packets.append((arrival, m.MAVLink_distance_sensor_message(ms, 20, 13000, 1000, 0, 0, 25, 0), ap))
+        packets.append((arrival, m.MAVLink_distance_sensor_message(ms, 20, 13000, round(1000 * tilt), 0, 0, 25, 0), ap))
+        if gimbal_pitch_deg is not None:
+            packets.append((arrival, m.MAVLink_gimbal_device_attitude_status_message(
+                0, 0, ms, m.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, quat(0.0, gimbal_pitch_deg, 0.0),
+                math.nan, math.nan, math.nan, 0, math.nan, math.nan, 0), ap))
         if j % 10 == 0:
             packets.append((arrival, m.MAVLink_ekf_status_report_message(ekf_flags, 0.1, 0.1, 0.1, 0.1, 0.0), ap))
     return write_tlog(path, packets)
@@ -139,6 +148,27 @@ def test_edge_run_replays_a_video_with_its_tlog_as_it_replays_its_poses(assets, 
         assert t["scale_source"].startswith("altitude") and t["agl_m"] == pytest.approx(10.0, abs=0.05)
 
 
+def test_a_gimbal_in_the_log_places_the_camera(assets, tmp_path):
+    """The vehicle hovers 11.5° nose down while its gimbal holds the camera 45° below the horizon (the flat-ground
+    model's view): read from the log, the gimbal's reports put every spot on the ground; the fixed mount does not."""
+    m = load_mavutil().mavlink
+    tlog = hand_made_log(tmp_path / "gimbal.tlog", m.EKF_ATTITUDE | m.EKF_POS_HORIZ_REL, pitch_rad=-0.2,
+                         gimbal_pitch_deg=-45.0)
+    downs = {}
+    for extra in ([], ["--gimbal", "mavlink"]):
+        log_path = tmp_path / f"g{len(extra)}.jsonl"
+        assert main(["--camera", assets["video"], "--model", assets["model"], "--tlog", str(tlog),
+                     "--tlog-video-start", "+1", "--log", str(log_path), "--allow-unconfirmed", *extra]) == 0
+        decisions = read_decisions(log_path)
+        assert len(decisions) == 10 and all(d["valid"] for d in decisions), [d["reason"] for d in decisions]
+        downs[bool(extra)] = [d["ned_m"][2] for d in decisions]
+        if extra:
+            assert all(d["gimbal_mount_deg"][1] == pytest.approx(-45.0 + math.degrees(0.2), abs=0.5)
+                       for d in decisions)
+    assert max(abs(v) for v in downs[True]) < 0.1          # on the ground, 10 m below the vehicle
+    assert min(abs(v) for v in downs[False]) > 0.3          # the body-fixed mount is off by the vehicle's tilt
+
+
 @pytest.mark.parametrize("argv, expected", [
     (["--tlog", "{d}/missing.tlog", "--tlog-video-start", "+1"], "does not exist"),
     (["--tlog", "{poses}", "--tlog-video-start", "+1"], "not a .tlog"),
@@ -149,8 +179,6 @@ def test_edge_run_replays_a_video_with_its_tlog_as_it_replays_its_poses(assets, 
     (["--tlog", "{tlog}", "--tlog-video-start", "2026-01-01T00:00:02"], "no time zone"),
     (["--tlog", "{tlog}", "--tlog-video-start", "+1", "--poses", "{poses}"], "not both"),
     (["--tlog", "{tlog}", "--tlog-video-start", "+1", "--loop"], "--loop with --tlog"),
-    (["--tlog", "{tlog}", "--tlog-video-start", "+1", "--gimbal", "mavlink", "--mav", "udpout:127.0.0.1:14550"],
-     "--gimbal mavlink"),
 ])
 def test_tlog_mistakes_are_one_line(assets, capsys, argv, expected):
     Path(assets["dir"], "flight.bin").write_bytes(b"\xa3\x95\x80" * 40)

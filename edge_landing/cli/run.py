@@ -159,7 +159,7 @@ class RunConfig:
                              f"got {self.camera_width}, {self.camera_height}")
         check_camera_flags(self.camera, self.camera_delay_s, self.intrinsics, self.poses)
         check_tlog(self.camera, self.tlog, self.tlog_video_start, self.poses, self.loop, self.mav_target_system)
-        check_gimbal(self.gimbal, self.mav, self.camera, self.poses or self.tlog)
+        check_gimbal(self.gimbal, self.mav, self.camera, self.poses, self.tlog)
 
 
 def build_parser() -> argparse.ArgumentParser:

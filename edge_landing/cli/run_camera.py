@@ -88,19 +88,21 @@ def check_tlog(camera: str, path: Optional[str], video_start: Optional[str], pos
     TlogTelemetry(TlogConfig(path, video_start, target_system=target_system)).close()
 
 
-def check_gimbal(gimbal: GimbalSource, mav: Optional[str], camera: str, poses: Optional[str]) -> None:
-    """--gimbal mavlink reads the camera's orientation from the autopilot's link, for the frames it describes
-    (``poses``: a --poses or --tlog replay's file, whose frames it does not describe)."""
+def check_gimbal(gimbal: GimbalSource, mav: Optional[str], camera: str, poses: Optional[str],
+                 tlog: Optional[str] = None) -> None:
+    """--gimbal mavlink reads the camera's orientation from the autopilot's reports, live (--mav) or as a flight's
+    telemetry log recorded them (--tlog), for the frames they describe (not a --poses replay's or the sim's)."""
     kind = SourceKind.from_string(camera)
     if kind is SourceKind.SIM_FOLLOW and "gimbal" in camera.partition("@")[0].split(":") and not mav:
         raise InputError("--camera sim-follow:...:gimbal: a gimballed camera's orientation comes from the "
                          "autopilot's reports, so it needs --mav (and --gimbal mavlink to read them)")
     if gimbal is GimbalSource.NONE:
         return
-    if not mav:
-        raise InputError("--gimbal mavlink reads the gimbal's reports from the autopilot: it needs --mav")
+    if not mav and not tlog:
+        raise InputError("--gimbal mavlink reads the gimbal's reports from the autopilot: it needs --mav (or --tlog "
+                         "for a recorded flight)")
     if poses or kind is SourceKind.SIM:
-        raise InputError("--gimbal mavlink: this input brings its own poses (the sim camera, --poses, --tlog), not the "
+        raise InputError("--gimbal mavlink: this input brings its own poses (the sim camera, --poses), not the "
                          "autopilot's, so the gimbal's reports would describe another flight")
 
 

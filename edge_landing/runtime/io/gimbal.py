@@ -132,11 +132,11 @@ class GimbalSeries:
             return True
 
     def add_report(self, msg: Any, sender: Tuple[int, int], from_autopilot: bool,
-                   stamp: Callable[[float, float], Optional[float]]) -> bool:
-        """A GIMBAL_DEVICE_ATTITUDE_STATUS from the autopilot's system. The autopilot's own reports (it reports the
-        gimbals it drives) are on its clock: ``stamp`` maps them as telemetry. A gimbal device's are on the
-        device's clock, unknown here: timed on arrival."""
-        arrival = time.monotonic()
+                   stamp: Callable[[float, float], Optional[float]], arrival_s: Optional[float] = None) -> bool:
+        """A GIMBAL_DEVICE_ATTITUDE_STATUS from the autopilot's system, arrived at ``arrival_s`` (default now). The
+        autopilot's own reports (it reports the gimbals it drives) are on its clock: ``stamp`` maps them as
+        telemetry. A gimbal device's are on the device's clock, unknown here: timed on arrival."""
+        arrival = time.monotonic() if arrival_s is None else arrival_s
         sample_s = stamp(msg.time_boot_ms, arrival) if from_autopilot else arrival
         device = (sender[1], int(getattr(msg, "gimbal_device_id", 0) or 0))
         return self.add(tuple(msg.q), int(msg.flags), int(msg.failure_flags), sample_s, arrival, device)

@@ -40,6 +40,7 @@ from edge_landing.runtime.io.telemetry_feed import (  # noqa: F401  (TELEMETRY_M
     ESTIMATOR_MESSAGES,
     GIMBAL_MESSAGE,
     TELEMETRY_MESSAGES,
+    feed_gimbal_report,
     feed_telemetry,
     is_autopilot_heartbeat,
 )
@@ -369,8 +370,7 @@ class MavlinkLink:
             self.counts.add("before_autopilot")
             return
         if kind == GIMBAL_MESSAGE and sender[0] == self.peer[0]:   # the autopilot's or a gimbal device's
-            gimbal = self.telemetry.gimbal
-            if gimbal is not None and gimbal.add_report(msg, sender, sender == self.peer, self.telemetry.stamp):
+            if feed_gimbal_report(self.telemetry, msg, sender, self.peer, time.monotonic()):
                 self.counts.add("gimbal_reports")
             return
         if sender != self.peer:

@@ -5,12 +5,12 @@ One rule for the live link (``mavlink_link.py``) and for a recorded telemetry lo
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Tuple
 
 from edge_landing.runtime.io.telemetry import RANGEFINDER_DOWN, TelemetryBuffer
 
 __all__ = ["TELEMETRY_MESSAGES", "ESTIMATOR_MESSAGES", "GIMBAL_MESSAGE", "MAV_AUTOPILOT_INVALID",
-           "NOT_A_VEHICLE_TYPES", "is_autopilot_heartbeat", "feed_telemetry"]
+           "NOT_A_VEHICLE_TYPES", "is_autopilot_heartbeat", "feed_telemetry", "feed_gimbal_report"]
 
 TELEMETRY_MESSAGES = ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "LOCAL_POSITION_NED")
 GIMBAL_MESSAGE = "GIMBAL_DEVICE_ATTITUDE_STATUS"   # read only when the telemetry has a gimbal (edge-run --gimbal)
@@ -47,3 +47,14 @@ def feed_telemetry(telemetry: TelemetryBuffer, msg: Any, arrival_s: float, mavli
         telemetry.add_rangefinder(msg.current_distance / 100.0, msg.time_boot_ms, arrival_s,
                                   min_m=msg.min_distance / 100.0, max_m=msg.max_distance / 100.0)
     return "telemetry"
+
+
+def feed_gimbal_report(telemetry: TelemetryBuffer, msg: Any, sender: Tuple[int, int], autopilot: Tuple[int, int],
+                       arrival_s: float) -> bool:
+    """A GIMBAL_DEVICE_ATTITUDE_STATUS for ``telemetry``'s gimbal (edge-run --gimbal), when it comes from the
+    autopilot's system: the autopilot's own report or a gimbal device's beside it (gimbal.GimbalSeries.add_report).
+    True when it was kept; False when it was refused, or there is no gimbal to read or it came from elsewhere."""
+    gimbal = telemetry.gimbal
+    if gimbal is None or sender[0] != autopilot[0]:
+        return False
+    return gimbal.add_report(msg, sender, sender == autopilot, telemetry.stamp, arrival_s)

@@ -25,7 +25,12 @@ from typing import Any, Optional, Tuple
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.io.mavlink_conn import load_mavutil
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
-from edge_landing.runtime.io.telemetry_feed import feed_telemetry, is_autopilot_heartbeat
+from edge_landing.runtime.io.telemetry_feed import (
+    GIMBAL_MESSAGE,
+    feed_gimbal_report,
+    feed_telemetry,
+    is_autopilot_heartbeat,
+)
 
 __all__ = ["TlogConfig", "TlogTelemetry", "parse_video_start"]
 log = logging.getLogger(__name__)
@@ -91,7 +96,7 @@ class TlogTelemetry:
         except Exception as exc:   # pymavlink raises bare Exceptions on files it cannot parse
             raise InputError(f"--tlog {config.path} cannot be read as a telemetry log ({exc})") from None
         self.peer: Optional[Tuple[int, int]] = None
-        self.counts = {"packets": 0, "fed": 0, "before_autopilot": 0, "other_senders": 0}
+        self.counts = {"packets": 0, "fed": 0, "gimbal_reports": 0, "before_autopilot": 0, "other_senders": 0}
         self.ended = False
         try:
             self._pending = self._first_packet()
@@ -155,6 +160,9 @@ class TlogTelemetry:
                      *sender)
         if self.peer is None:
             self.counts["before_autopilot"] += 1
+            return 0
+        if msg.get_type() == GIMBAL_MESSAGE and sender[0] == self.peer[0]:   # its own report or its gimbal's
+            self.counts["gimbal_reports"] += feed_gimbal_report(telemetry, msg, sender, self.peer, arrival_s)
             return 0
         if sender != self.peer:
             self.counts["other_senders"] += 1
