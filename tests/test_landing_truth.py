@@ -59,16 +59,18 @@ def test_the_world_comes_from_the_log_header_and_flags_override_it(world, tmp_pa
     n, e = open_spot(world)               # open ground in suburban seed 0
     log = write_log(tmp_path / "sub.jsonl", run_header("suburban", 0), (n, e))
     result = evaluate(TruthConfig(log=str(log)))
-    assert result["world"] == {"style": "suburban", "seed": 0, "from": "the log header"}
+    assert result["world"] == {"style": "suburban", "seed": 0, "hazards": False, "from": "the log header"}
     assert (result["frames"], result["targets"], result["safe"]) == (1, 1, 1)   # the header is not a decision
     # the same spot judged in a log that says urban seed 3: another world, so it is judged there
     urban = write_log(tmp_path / "urban.jsonl", run_header("urban", 3), (n, e))
-    assert evaluate(TruthConfig(log=str(urban)))["world"] == {"style": "urban", "seed": 3, "from": "the log header"}
+    assert evaluate(TruthConfig(log=str(urban)))["world"] == {"style": "urban", "seed": 3, "hazards": False,
+                                                              "from": "the log header"}
     # explicit flags win over the header
     assert main([str(urban), "--style", "suburban", "--seed", "0"]) == 0
     assert "1/1 targets" in capsys.readouterr().out
     over = evaluate(TruthConfig(log=str(urban), style="suburban", seed=0))
-    assert over["world"] == {"style": "suburban", "seed": 0, "from": "--style/--seed"} and over["safe"] == 1
+    assert over["world"] == {"style": "suburban", "seed": 0, "hazards": False,
+                             "from": "--style/--seed and the log header"} and over["safe"] == 1
 
 
 def test_a_log_that_names_no_world_is_refused_in_one_line(world, tmp_path, capsys):
@@ -85,6 +87,28 @@ def test_a_log_that_names_no_world_is_refused_in_one_line(world, tmp_path, capsy
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "flight.mp4" in err[0] and "not a known sim world" in err[0]
     assert main([str(video), "--style", "suburban", "--seed", "0"]) == 0
+
+
+def test_a_replayed_edge_sim_video_is_judged_in_the_world_its_scene_json_names(world, tmp_path, capsys):
+    """--poses or --tlog replays of an edge-sim --flight video: the scene.json beside the video names the world,
+    hazards included (judged without them, a spot by a car would pass); one that does not say is refused."""
+    n, e = open_spot(world)
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    video = scene / "flight.mp4"
+    video.write_bytes(b"")
+    log = write_log(tmp_path / "replay.jsonl", run_header(None, None, str(video), "file"), (n, e))
+    for hazards in (False, True):
+        (scene / "scene.json").write_text(json.dumps({"generator": {"name": "edge-sim", "style": "suburban", "seed": 0,
+                                                                    "hazards": hazards}}))
+        assert evaluate(TruthConfig(log=str(log)))["world"] == {"style": "suburban", "seed": 0, "hazards": hazards,
+                                                                "from": str(scene / "scene.json")}
+    assert main([str(log)]) == 0 and "seed 0 with hazards (from" in capsys.readouterr().out
+    (scene / "scene.json").write_text(json.dumps({"generator": {"name": "edge-sim", "style": "suburban", "seed": 0}}))
+    assert main([str(log)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--hazards or --no-hazards" in err[0]
+    assert main([str(log), "--no-hazards"]) == 0
 
 
 def test_a_sim_follow_log_is_judged_about_the_autopilots_home(world, tmp_path):

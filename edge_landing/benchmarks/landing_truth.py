@@ -7,10 +7,12 @@ ARCHITECTURE.md §4), all hits lie within ``max_step_m`` of each other in height
 and none is water (level and "horizontal" by its normals, but no place to land).
 
 The world (style, seed) comes from the log's first line, the ``{"run": {...}}`` header edge-run writes
-(``sim_style``, ``sim_seed``); ``--style``/``--seed`` override it, e.g. for an ``edge-sim --flight`` video
-replayed with its poses. A ``--camera sim-follow`` log's targets are in the autopilot's local NED: its home's
-place in the world (``sim.follow.place_home``) is added. A log that names no world and no flags is refused:
-judging against the wrong world gives a confident, wrong figure.
+(``sim_style``, ``sim_seed``; a sim camera's world has no hazards), or, for an ``edge-sim --flight`` video
+replayed with its poses or its telemetry log, from the ``scene.json`` beside the video (style, seed and
+whether hazards were rendered); ``--style``/``--seed``/``--hazards`` override either. A ``--camera
+sim-follow`` log's targets are in the autopilot's local NED: its home's place in the world
+(``sim.follow.place_home``) is added. A log that names no world and no flags is refused: judging against the
+wrong world gives a confident, wrong figure.
 
     edge-run --log /tmp/t.jsonl && python -m edge_landing.benchmarks.landing_truth /tmp/t.jsonl --clearance 2.0
 """
@@ -20,6 +22,7 @@ import argparse
 import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
@@ -31,8 +34,9 @@ from edge_landing.runtime.core.errors import InputError
 @dataclass(frozen=True)
 class TruthConfig:
     log: str
-    style: Optional[str] = None   # the world: None = from the log's run header
+    style: Optional[str] = None   # the world: None = from the log's run header (or the scene beside its video)
     seed: Optional[int] = None
+    hazards: Optional[bool] = None   # sim.hazards in the world (edge-sim --hazards); None = from the same place
     clearance_m: float = 2.0      # the vehicle radius + margin edge-run was given (defaults 1 + 1)
     sample_step_m: float = 0.25
     horizontal_max_deg: float = 10.0
@@ -88,11 +92,27 @@ def read_log(path: str) -> tuple[Optional[dict[str, Any]], list[dict[str, Any]]]
     return header, records
 
 
-def world_of(cfg: TruthConfig, header: Optional[dict[str, Any]]) -> tuple[str, int, str]:
-    """(style, seed, where they came from): the flags where given, the rest from the log's run header."""
+def scene_beside(header: Optional[dict[str, Any]]) -> tuple[dict[str, Any], str]:
+    """The ``generator`` record of an edge-sim scene.json next to the log's video (and its path), or ({}, '')."""
+    camera = (header or {}).get("camera")
+    if (header or {}).get("source_kind") not in ("file", "folder") or not isinstance(camera, str):
+        return {}, ""
+    path = Path(camera).parent / "scene.json" if Path(camera).is_file() else Path(camera) / "scene.json"
+    try:
+        generator = json.loads(path.read_text()).get("generator") or {}
+    except (OSError, ValueError, AttributeError):
+        return {}, ""
+    return (generator, str(path)) if isinstance(generator, dict) and generator.get("name") == "edge-sim" else ({}, "")
+
+
+def world_of(cfg: TruthConfig, header: Optional[dict[str, Any]]) -> tuple[str, int, bool, str]:
+    """(style, seed, hazards, where they came from): the flags where given, the rest from the log's run header
+    or from the edge-sim scene.json beside its video."""
     run: dict[str, Any] = header or {}
-    style = cfg.style if cfg.style is not None else run.get("sim_style")
-    seed = cfg.seed if cfg.seed is not None else run.get("sim_seed")
+    scene, scene_path = scene_beside(header)
+    sim_camera = run.get("sim_style") is not None
+    style = cfg.style if cfg.style is not None else run.get("sim_style", None) or scene.get("style")
+    seed = cfg.seed if cfg.seed is not None else run.get("sim_seed") if sim_camera else scene.get("seed")
     if style is None or seed is None:
         missing = " and ".join(f for f, v in (("--style", style), ("--seed", seed)) if v is None)
         if header is None:
@@ -102,9 +122,16 @@ def world_of(cfg: TruthConfig, header: Optional[dict[str, Any]]) -> tuple[str, i
                          f"known sim world; give {missing} if it was rendered by edge-sim")
     if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
         raise InputError(f"{cfg.log}: sim_seed {seed!r} in the run header is not a non-negative integer")
-    given = [f for f, v in (("--style", cfg.style), ("--seed", cfg.seed)) if v is not None]
-    source = ("/".join(given) + (" and the log header" if len(given) < 2 else "")) if given else "the log header"
-    return str(style), seed, source
+    hazards = cfg.hazards
+    if hazards is None:
+        if scene and not sim_camera and "hazards" not in scene:
+            raise InputError(f"{scene_path} does not say whether hazards were rendered (written before it did); "
+                             f"give --hazards or --no-hazards")
+        hazards = bool(scene.get("hazards", False)) if not sim_camera else False
+    given = [f for f, v in (("--style", cfg.style), ("--seed", cfg.seed), ("--hazards", cfg.hazards)) if v is not None]
+    where = f"{scene_path}" if scene and not sim_camera else "the log header"
+    source = ("/".join(given) + (f" and {where}" if len(given) < 3 else "")) if given else where
+    return str(style), seed, bool(hazards), source
 
 
 def evaluate(cfg: TruthConfig) -> dict:
@@ -113,9 +140,9 @@ def evaluate(cfg: TruthConfig) -> dict:
     header, records = read_log(cfg.log)
     if not records:
         raise InputError(f"{cfg.log} holds no decisions (expected the JSON lines of edge-run --log)")
-    style, seed, source = world_of(cfg, header)
+    style, seed, hazards, source = world_of(cfg, header)
     targets = [r for r in records if r.get("valid") and r.get("ned_m")]
-    world = sim.build_world(style, seed)
+    world = sim.build_world(style, seed, hazards=hazards)
     # sim-follow: targets are in the autopilot's local NED, whose origin (home) sim.follow placed in the world
     offset = np.zeros(3)
     if (header or {}).get("source_kind") == "sim-follow":
@@ -130,7 +157,7 @@ def evaluate(cfg: TruthConfig) -> dict:
     safe = len(targets) - len(failures)
     return {"frames": len(records), "targets": len(targets), "safe": safe,
             "safe_share": safe / len(targets) if targets else math.nan, "failures": failures,
-            "world": {"style": style, "seed": seed, "from": source}, "config": cfg.__dict__}
+            "world": {"style": style, "seed": seed, "hazards": hazards, "from": source}, "config": cfg.__dict__}
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
@@ -139,6 +166,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("log", help="decision log of edge-run --log (JSON lines, the run header first)")
     p.add_argument("--style", help="sim world style (default: the log header's sim_style)")
     p.add_argument("--seed", type=int, help="sim world seed (default: the log header's sim_seed)")
+    p.add_argument("--hazards", action=argparse.BooleanOptionalAction, default=None, help="whether the world has "
+                   "edge-sim's hazards (default: the scene.json beside the log's video says; a sim camera's has none)")
     p.add_argument("--clearance", type=float, default=2.0, help="requested clearance radius, metres")
     a = p.parse_args(argv)
     if a.seed is not None:
@@ -148,11 +177,11 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
 
         check_choice("--style", Style.from_string, a.style)
     check_number("--clearance", a.clearance, 0.0, 50.0, lo_open=True, unit="metres")
-    result = evaluate(TruthConfig(a.log, a.style, a.seed, a.clearance))
+    result = evaluate(TruthConfig(a.log, a.style, a.seed, a.hazards, a.clearance))
     w = result["world"]
     print(f"{result['safe']}/{result['targets']} targets on ground-truth horizontal, level, dry ground with "
           f"{a.clearance:.1f} m clearance ({100 * result['safe_share']:.1f} %); {result['frames']} frames; "
-          f"world {w['style']} seed {w['seed']} (from {w['from']})")
+          f"world {w['style']} seed {w['seed']}{' with hazards' if w['hazards'] else ''} (from {w['from']})")
     for f in result["failures"][:10]:
         print(f"  frame {f['frame']}: {f['why']} at NED {[round(v, 1) for v in f['ned_m']]}")
     return 0

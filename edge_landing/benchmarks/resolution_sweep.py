@@ -147,7 +147,7 @@ def fly(config: SweepConfig, style: str, seed: int, width: int, height: int, mod
     fuser = LandingFuser(fusion_cfg, intrinsics, mount)
     continuity = Continuity(ContinuityConfig(min_clearance_m=config.clearance_m)) if config.geometry else None
     scale = ScaleStage(None, AltitudeScaleEstimator(), intrinsics, mount)
-    truth = TruthConfig("", style, seed, config.clearance_m)
+    truth = TruthConfig("", style, seed, clearance_m=config.clearance_m)
     result = FlightResult(style, seed, width, height, 0)
     voted = wrong = 0
     rels = []

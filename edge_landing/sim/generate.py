@@ -137,6 +137,7 @@ def generator_record(config: SimConfig, world, per_frame: list[dict]) -> dict:
     """Everything needed to regenerate the scene, for scene.json's ``generator``."""
     return {
         "name": "edge-sim", "version": SIM_VERSION, "style": str(config.style), "seed": int(config.seed),
+        "hazards": bool(config.hazards),
         "frames": int(config.frames), "mode": "flight" if config.flight else "views", "fps": float(config.fps),
         "width": config.width, "height": config.height, "hfov_deg": float(config.hfov_deg),
         "elevation_range_m": list(AGL_RANGE_M), "agl": "distance straight down to the first surface",
