@@ -18,7 +18,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence, TextIO, Tuple, Union
+from typing import Any, Dict, Optional, Sequence, TextIO
 
 from edge_landing import __version__
 from edge_landing.cli.common import (
@@ -37,21 +37,20 @@ from edge_landing.cli.run_camera import (
     check_tlog,
     tlog_config,
 )
+from edge_landing.cli.run_model import add_model_arguments, choose_files, load_inference  # noqa: F401  (re-exported)
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.io.flight_record import TLOG_NAME, FlightRecorder, RecordingSource, check_record_folder
 from edge_landing.runtime.io.gimbal import GimbalSeries, GimbalSource
 from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink, check_url, load_signing_key
 from edge_landing.runtime.io.sources import SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.perception.backend import RuntimeRequest
-from edge_landing.runtime.perception.precision import ModelChoice, Precision, ProbeConfig, pick_model
-from edge_landing.runtime.perception.runtime_choice import pick_runtime
+from edge_landing.runtime.perception.precision import Precision
 from edge_landing.runtime.pipeline import (
     ContinuityConfig,
     FrameCheck,
-    JointInference,
-    PairInference,
     Pipeline,
     PipelineOptions,
     ScaleStage,
@@ -107,6 +106,7 @@ class RunConfig:
     mount_pitch_deg: float = -45.0
     gimbal: GimbalSource = GimbalSource.NONE   # mavlink: the camera's orientation as the gimbal reports it, per frame
     record: Optional[str] = None
+    flight_record: Optional[str] = None   # a folder: the camera's frames and the link's packets, for a replay
     log_path: Optional[str] = None
     max_frames: int = 0
     duration_s: float = 0.0
@@ -166,25 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = CliParser(prog="edge-run", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     add_camera_arguments(p)
-    m = p.add_argument_group("model")
-    m.add_argument("--model", help="joint depth+HVO ONNX model (default: the shipped edgenet)")
-    m.add_argument("--precision", default="auto", help="auto (default): the faster on this CPU of the FP32 file and "
-                   "its INT8 twin X.int8.onnx (if it passed edge-quantize's accuracy gate), probed once and cached in "
-                   "~/.cache/edge-landing; fp32 or int8 to choose")
-    m.add_argument("--int8", action="store_true", help="same as --precision int8")
-    m.add_argument("--runtime", default="auto", help="auto (default): ONNX Runtime, or OpenVINO's CPU plugin on the "
-                   "same file(s) when openvino is installed, agrees with ONNX Runtime and is faster here (probed once, "
-                   "cached); onnxruntime or openvino to choose")
-    m.add_argument("--depth-model", help="depth ONNX model (with --hvo-model)")
-    m.add_argument("--hvo-model", help="HVO ONNX model (with --depth-model)")
-    m.add_argument("--calibration", help="calibration.json from edge-calibrate (depth scale)")
-    m.add_argument("--no-altitude-scale", action="store_true", help="do not estimate the scale from telemetry")
-    m.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (the drone has 2 cores)")
-    m.add_argument("--sequential", action="store_true", help="fuse each frame before the next inference "
-                   "(default: fusion of frame N overlaps inference of frame N+1)")
-    m.add_argument("--fusion-hz", type=float, default=0.0, help="fuse at most this many frames per second (>= 10; "
-                   "the others are inferred but give no target), leaving the cores to the model when the camera "
-                   "is faster than the whole pipeline (0 = fuse every frame, the default)")
+    add_model_arguments(p)
     f = p.add_argument_group("landing")
     f.add_argument("--vehicle-radius", type=float, default=1.0, help="metres")
     f.add_argument("--margin", type=float, default=1.0, help="extra clearance, metres")
@@ -203,6 +185,9 @@ def build_parser() -> argparse.ArgumentParser:
     o = p.add_argument_group("output")
     o.add_argument("--record", help="overlay video (.mp4)")
     o.add_argument("--log", dest="log_path", help="every decision as JSON lines")
+    o.add_argument("--flight-record", metavar="DIR", help="keep the camera's frames (camera.avi, with each frame's "
+                   "capture time) and every packet from --mav (link.tlog) in a new folder, to replay the flight later: "
+                   "edge-run --camera DIR/camera.avi --tlog DIR/link.tlog")
     o.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0 = no limit)")
     o.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0 = no limit)")
     f.add_argument("--obstacle-height", type=float, default=0.5, help="metres: a spot is confirmed only when the "
@@ -224,31 +209,12 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
                      vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
                      hfov_deg=a.hfov, intrinsics=a.intrinsics, mount_pitch_deg=a.mount_pitch, record=a.record,
+                     flight_record=a.flight_record,
                      gimbal=GimbalSource.from_string(a.gimbal),
                      log_path=a.log_path,
                      max_frames=a.max_frames, duration_s=a.duration, overlap=not a.sequential, fusion_hz=a.fusion_hz,
                      grid=GridMode.from_string(a.grid), obstacle_height_m=a.obstacle_height,
                      allow_unconfirmed=a.allow_unconfirmed)
-
-
-def choose_files(cfg: RunConfig) -> Tuple[ModelChoice, ...]:
-    """The file(s) to run: for each FP32 model, it or its INT8 twin (``--precision``, default the faster here)."""
-    from edge_landing.runtime.models import default_model_path
-
-    probe = ProbeConfig(threads=cfg.threads)
-    given = (cfg.depth_model, cfg.hvo_model) if cfg.depth_model and cfg.hvo_model else (cfg.model,) if cfg.model else ()
-    paths = [Path(p) for p in given if p] or [default_model_path()]
-    return tuple(pick_runtime(pick_model(p, cfg.precision, probe), p, cfg.precision, cfg.runtime, probe) for p in paths)
-
-
-def load_inference(cfg: RunConfig, out: Optional[TextIO] = None) -> Union[JointInference, PairInference]:
-    from edge_landing.runtime.perception.inference import OnnxModel, SessionConfig
-
-    choices = choose_files(cfg)
-    for choice in choices:
-        print(f"edge-run: {choice.line()}", file=out or sys.stdout, flush=True)
-    models = [OnnxModel.load(c.path, config=SessionConfig(threads=cfg.threads, runtime=c.runtime)) for c in choices]
-    return PairInference(models[0], models[1]) if len(models) == 2 else JointInference(models[0])
 
 
 def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> Dict[str, Any]:
@@ -308,8 +274,9 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
             # The simulator's (or a replayed flight's) telemetry matches its frames; an autopilot's would
             # describe another flight.
             link_telemetry = TelemetryBuffer() if own_telemetry else telemetry
+            tlog_out = str(Path(cfg.flight_record) / TLOG_NAME) if cfg.flight_record else ""
             link = MavlinkLink(LinkConfig(cfg.mav, cfg.autopilot, cfg.mav_sysid, cfg.mav_compid, cfg.mav_key,
-                                          target_system=cfg.mav_target_system), link_telemetry).start()
+                                          target_system=cfg.mav_target_system, tlog_out=tlog_out), link_telemetry).start()
             stack.callback(link.stop)
             if own_telemetry:  # said once the link is up, not before a bad --mav is refused
                 log.info("%s: using its own telemetry; the autopilot's is not used",
@@ -318,6 +285,11 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
                 wait_for_telemetry(telemetry, cfg.telemetry_wait_s, out)
         grabber = Grabber(src, telemetry=telemetry if own_telemetry else None).start()
         stack.callback(grabber.stop)
+        source: Any = grabber
+        if cfg.flight_record:   # what the pipeline takes is kept as it came (io.flight_record)
+            flight = FlightRecorder(Path(cfg.flight_record), cfg.fps)
+            stack.callback(flight.close)
+            source = RecordingSource(grabber, flight)
         first = grabber.next(timeout_s=30.0)
         if first is None:
             raise InputError(f"camera {cfg.camera} gave no frame within 30 s"
@@ -344,7 +316,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
                                                                min_clearance_m=fusion_cfg.required_clearance_m,
                                                                commit_unconfirmed=cfg.allow_unconfirmed))
         h, w = first.rgb.shape[:2]
-        pipeline = Pipeline(grabber, inference, scale, fuser.fuse, telemetry if has_telemetry else None, link,
+        pipeline = Pipeline(source, inference, scale, fuser.fuse, telemetry if has_telemetry else None, link,
                             options, decision_log, recorder, out, FrameCheck(w, h))
         print(f"edge-run: {cfg.camera} -> {inference.name} -> "
               f"{cfg.mav + ' (' + cfg.autopilot.value + ')' if cfg.mav else 'no MAVLink'}; "
@@ -368,6 +340,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
             raise InputError(f"{what} {path} is a folder, expected a file")
         if path and not Path(path).is_file():
             raise InputError(f"{what} file {path} does not exist")
+    if cfg.flight_record:
+        check_record_folder(cfg.flight_record)
     for path, what in ((cfg.record, "--record"), (cfg.log_path, "--log")):
         if path and not Path(path).resolve().parent.is_dir():
             raise InputError(f"{what} {path}: folder {Path(path).resolve().parent} does not exist")

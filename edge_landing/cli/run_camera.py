@@ -11,6 +11,7 @@ from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame
 from edge_landing.runtime.io.camera_file import fit_to_frame, load_intrinsics
+from edge_landing.runtime.io.flight_record import frame_times_beside
 from edge_landing.runtime.io.gimbal import GimbalSource
 from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.sources import SourceKind
@@ -82,10 +83,12 @@ def check_tlog(camera: str, path: Optional[str], video_start: Optional[str], pos
         raise InputError("give --poses or --tlog, not both: each is the recording's telemetry")
     if loop:
         raise InputError("--loop with --tlog: the log's telemetry does not repeat with the video")
-    if not video_start:
+    recorded = frame_times_beside(camera)   # a flight recorder's video says when each frame was taken
+    if not video_start and not recorded:
         raise InputError(f"--tlog needs --tlog-video-start: when the video's first frame was taken, on the log's "
-                         f"clock ({START_FORMS})")
-    TlogTelemetry(TlogConfig(path, video_start, target_system=target_system)).close()
+                         f"clock ({START_FORMS}); a --flight-record video has it beside it")
+    start = video_start or (f"{recorded[0]:.6f}" if recorded else "")
+    TlogTelemetry(TlogConfig(path, start, target_system=target_system)).close()
 
 
 def check_gimbal(gimbal: GimbalSource, mav: Optional[str], camera: str, poses: Optional[str],

@@ -38,6 +38,7 @@ class LinkConfig:
     connect_timeout_s: float = 2.0
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 5.0
+    tlog_out: str = ""             # write every packet received here as a .tlog (edge-run --flight-record)
 
     def __post_init__(self) -> None:
         # MAVLink packs ids in one byte: a larger one would kill the link thread at its first heartbeat.

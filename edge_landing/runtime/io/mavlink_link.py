@@ -44,6 +44,7 @@ from edge_landing.runtime.io.telemetry_feed import (  # noqa: F401  (TELEMETRY_M
     feed_telemetry,
     is_autopilot_heartbeat,
 )
+from edge_landing.runtime.io.tlog import TlogWriter
 
 __all__ = ["Autopilot", "LinkConfig", "LinkCounts", "MavlinkLink", "check_url", "load_mavutil", "load_signing_key",
            "NET_PREFIXES", "FRAME_BODY_FRD", "FRAME_LOCAL_NED", "TELEMETRY_MESSAGES"]
@@ -77,6 +78,7 @@ class MavlinkLink:
         self._timesync_said = False
         self._last_answer_s = -math.inf
         self._noise_seen = 0
+        self._tlog: Optional[TlogWriter] = None
 
     # -- life cycle -----------------------------------------------------------------------------------
     def start(self) -> MavlinkLink:
@@ -89,6 +91,8 @@ class MavlinkLink:
         if self.config.key_path:
             self._key = load_signing_key(self.config.key_path)
         self._mavutil = load_mavutil()
+        if self.config.tlog_out:
+            self._tlog = TlogWriter(self.config.tlog_out)
         # Connecting happens in the thread: an endpoint that drops connection attempts never blocks start-up.
         self._thread = threading.Thread(target=self._run, name="mavlink", daemon=True)
         self._thread.start()
@@ -98,6 +102,8 @@ class MavlinkLink:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=3.0)
+        if self._tlog is not None:
+            self._tlog.close()
         with self._lock:
             self._close()
 
@@ -271,6 +277,8 @@ class MavlinkLink:
                 self._fault(f"receive failed: {exc}")
                 continue
             if msg is not None:
+                if self._tlog is not None and msg.get_type() != "BAD_DATA":
+                    self._tlog.write(msg)
                 self._handle(msg)
             self._count_noise(conn)
             self._report()

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from typing import Any, List, Optional
 
 import numpy as np
 
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import VehicleState
+from edge_landing.runtime.io.flight_record import frame_times_beside
 from edge_landing.runtime.io.sources import Reader
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.io.tlog import TlogConfig, TlogTelemetry
@@ -71,6 +73,10 @@ class TlogReplayReader(Reader):
         import cv2
 
         self.inner, self.name = inner, inner.name
+        # A flight recorder's video carries each frame's capture time beside it: the start and the frames' times.
+        self._recorded = frame_times_beside(inner.name)
+        if self._recorded and not config.video_start:
+            config = replace(config, video_start=f"{self._recorded[0]:.6f}")
         self.tlog = TlogTelemetry(config)
         self._cap, self._pos = getattr(inner, "cap", None), cv2.CAP_PROP_POS_MSEC
         container_fps = float(self._cap.get(cv2.CAP_PROP_FPS) or 0.0) if self._cap is not None else 0.0
@@ -92,7 +98,11 @@ class TlogReplayReader(Reader):
         return rgb
 
     def _pts_s(self) -> float:
-        """The frame's time in the video: its own time stamp where the container has one, else index / fps."""
+        """The frame's time in the video: as the flight recorder wrote it beside the video, else the video's own
+        time stamp where the container has one, else index / fps."""
+        if self._recorded and self._index < len(self._recorded):
+            self._last_pts_s = self._recorded[self._index] - self._recorded[0]
+            return self._last_pts_s
         pts = self._cap.get(self._pos) / 1000.0 if self._cap is not None else math.nan
         if not (math.isfinite(pts) and pts > self._last_pts_s and (pts > 0 or self._index == 0)):
             pts = self._index / self.fps

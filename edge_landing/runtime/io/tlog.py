@@ -18,6 +18,8 @@ from __future__ import annotations
 import logging
 import math
 import os
+import struct
+import time
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, Optional, Tuple
@@ -32,7 +34,7 @@ from edge_landing.runtime.io.telemetry_feed import (
     is_autopilot_heartbeat,
 )
 
-__all__ = ["TlogConfig", "TlogTelemetry", "parse_video_start"]
+__all__ = ["TlogConfig", "TlogTelemetry", "TlogWriter", "parse_video_start"]
 log = logging.getLogger(__name__)
 
 START_FORMS = "UNIX seconds (1732406400.25), an ISO 8601 time with its zone (2026-11-24T10:00:03.2Z), or +S " \
@@ -177,3 +179,36 @@ class TlogTelemetry:
             self._conn.close()
         except Exception:   # closing a read-only file cannot lose anything
             pass
+
+
+class TlogWriter:
+    """Writes what a link receives as a .tlog (edge-run --flight-record): each packet's bytes as they arrived, after
+    its arrival time on the UNIX clock (8 bytes, big-endian µs). Written from the link's thread only; buffered, and
+    every packet written is on disk once ``close`` returns."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self._file: Optional[Any] = open(path, "ab")
+        self.packets = 0
+
+    def write(self, msg: Any, arrival_unix_s: Optional[float] = None) -> None:
+        """Never raises: a write that fails (a full disk) ends the recording, said once; the link goes on."""
+        raw = msg.get_msgbuf()
+        if not raw or self._file is None:
+            return
+        now = time.time() if arrival_unix_s is None else arrival_unix_s
+        try:
+            self._file.write(struct.pack(">Q", int(now * 1e6)) + bytes(raw))
+        except (OSError, ValueError) as exc:
+            log.warning("telemetry log %s: writing failed (%s); recording stopped", self.path, exc)
+            self.close()
+            return
+        self.packets += 1
+
+    def close(self) -> None:
+        if self._file is not None:
+            file, self._file = self._file, None
+            try:
+                file.close()
+            except OSError as exc:
+                log.warning("telemetry log %s: closing failed (%s)", self.path, exc)
