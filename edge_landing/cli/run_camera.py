@@ -38,14 +38,16 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
                      "telemetry passes every check the live link's does")
     src.add_argument("--tlog-video-start", help="with --tlog: when the video's first frame was taken, on the log's "
                      "clock: UNIX seconds, an ISO 8601 time with its zone (2026-11-24T10:00:03.2Z), or +S (seconds "
-                     "after the log's first packet)")
+                     "after the log's first packet); not needed for a --flight-record video, whose frame times "
+                     "are beside it")
     src.add_argument("--hfov", type=float, default=90.0, help="camera horizontal field of view, degrees")
     src.add_argument("--intrinsics", help="the camera's calibration instead of --hfov: JSON (fx, fy, cx, cy, dist, "
                      "width, height), OpenCV FileStorage YAML/XML or ROS camera_info YAML, with lens distortion")
     src.add_argument("--mount-pitch", type=float, default=-45.0, help="camera pitch relative to the body, degrees "
                      "(negative = below the horizon)")
     src.add_argument("--gimbal", default="none", help="mavlink: the camera is on a gimbal whose orientation comes "
-                     "from --mav (GIMBAL_DEVICE_ATTITUDE_STATUS), per frame; none (default): --mount-pitch, fixed")
+                     "from --mav or --tlog (GIMBAL_DEVICE_ATTITUDE_STATUS), per frame; none (default): --mount-pitch, "
+                     "fixed")
 
 
 def check_camera_flags(camera: str, delay_s: float, intrinsics: Optional[str], poses: Optional[str]) -> None:
