@@ -77,3 +77,27 @@ def test_a_folder_that_holds_a_recording_is_not_written_over(assets, tmp_path, c
     afile.write_text("x")
     assert main(["--camera", assets["video"], "--model", assets["model"], "--flight-record", str(afile)]) == 2
     assert "is not a folder" in capsys.readouterr().err
+
+
+def test_the_recorders_clock_does_not_step_with_the_wall_clock(tmp_path, monkeypatch):
+    """The link's packets and the frames share one UNIX offset taken once: a wall clock set in flight (NTP on a
+    companion computer without a real-time clock) moves neither."""
+    import time
+
+    from edge_landing.runtime.io.flight_record import unix_time
+    from edge_landing.runtime.io.tlog import TlogWriter
+
+    before = unix_time(time.monotonic())
+    real_time = time.time
+    monkeypatch.setattr(time, "time", lambda: real_time() + 3600.0)
+    writer = TlogWriter(str(tmp_path / "link.tlog"))
+    m = load_mavutil().mavlink
+    msg = m.MAVLink_attitude_message(1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    msg.pack(m.MAVLink(None, srcSystem=1, srcComponent=1))
+    writer.write(msg)
+    writer.close()
+    monkeypatch.undo()
+    conn = load_mavutil().mavlink_connection(str(tmp_path / "link.tlog"), notimestamps=False)
+    stamped = conn.recv_msg()._timestamp
+    conn.close()
+    assert abs(stamped - before) < 5.0 and abs(unix_time(time.monotonic()) - time.time()) < 5.0

@@ -208,3 +208,25 @@ def test_the_sims_tlog_streams_what_an_autopilot_would(assets):
     assert kinds[("ATTITUDE", 1)] == kinds[("LOCAL_POSITION_NED", 1)] == int(round(span_s * 20)) + 1
     assert kinds[("EKF_STATUS_REPORT", 1)] == int(span_s * 2) + 1 and kinds[("HEARTBEAT", 255)] >= 2
     assert np.all(np.diff(boot_ms) == 50) and arrivals[0] == LOG_START_UNIX_S and np.all(np.diff(arrivals) >= 0)
+
+
+def test_a_log_whose_clock_went_back_is_said_once_and_still_read(tmp_path, caplog):
+    """A ground station's wall clock stepped back 30 s in flight: said once; the packets after it are still read."""
+    m = load_mavutil().mavlink
+    mav = m.MAVLink(None, srcSystem=1, srcComponent=1)
+    path = tmp_path / "stepped.tlog"
+    with open(path, "wb") as fh:
+        for j in range(40):
+            t = LOG_START_UNIX_S + j / 20 - (30.0 if j >= 20 else 0.0)
+            msgs = [m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3),
+                    m.MAVLink_attitude_message(1000 + 50 * j, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)]
+            for msg in msgs:
+                fh.write(struct.pack(">Q", int(t * 1e6)) + msg.pack(mav))
+                mav.seq = (mav.seq + 1) % 256
+    log = TlogTelemetry(TlogConfig(str(path), "+0"))
+    with caplog.at_level("WARNING"):
+        log.feed_until(TelemetryBuffer(), LOG_START_UNIX_S + 5.0, 0.0)
+    said = [r.getMessage() for r in caplog.records if "clock went back" in r.getMessage()]
+    assert len(said) == 1 and "went back 29.9" in said[0]          # 0.95 s after the start to 29 s before it
+    assert log.counts["packets"] == 80 and log.ended
+    log.close()

@@ -24,11 +24,24 @@ from typing import Any, List, Optional
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Frame
 
-__all__ = ["FlightRecorder", "RecordingSource", "VIDEO_NAME", "TLOG_NAME", "frame_times_beside", "check_record_folder"]
+__all__ = ["FlightRecorder", "RecordingSource", "VIDEO_NAME", "TLOG_NAME", "frame_times_beside", "check_record_folder",
+           "unix_time"]
 log = logging.getLogger(__name__)
 
 VIDEO_NAME, TIMES_SUFFIX, TLOG_NAME = "camera.avi", ".frames.csv", "link.tlog"
 TIMES_FIELDS = ("index", "frame", "capture_unix_s")
+
+
+_UNIX_MINUS_MONOTONIC_S: list[float] = []
+
+
+def unix_time(monotonic_s: float) -> float:
+    """A monotonic time on the UNIX clock, by one offset taken once per process. The recorder's frame times and
+    link.tlog's arrival times share it, so a wall clock stepped in flight (NTP finding a network on a companion
+    computer without a real-time clock) moves neither against the other."""
+    if not _UNIX_MINUS_MONOTONIC_S:
+        _UNIX_MINUS_MONOTONIC_S.append(time.time() - time.monotonic())
+    return monotonic_s + _UNIX_MINUS_MONOTONIC_S[0]
 
 
 def times_path(video: str | os.PathLike[str]) -> Path:
@@ -78,8 +91,6 @@ class FlightRecorder:
         self.folder, self.fps = folder, fps if fps > 0 else 10.0
         self.recorded = self.dropped = 0
         self._queue: queue.Queue[Optional[Frame]] = queue.Queue(maxsize=queue_frames)
-        # The frames' capture times are on the monotonic clock; a .tlog's on the UNIX clock.
-        self._unix_minus_monotonic_s = time.time() - time.monotonic()
         self._writer: Any = None
         self._times = open(times_path(folder / VIDEO_NAME), "w", newline="")
         self._csv = csv.writer(self._times)
@@ -118,7 +129,7 @@ class FlightRecorder:
             self.dropped += 1
             return
         self._writer.write(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-        self._csv.writerow((self.recorded, frame.frame_id, f"{frame.capture_time_s + self._unix_minus_monotonic_s:.6f}"))
+        self._csv.writerow((self.recorded, frame.frame_id, f"{unix_time(frame.capture_time_s):.6f}"))
         self.recorded += 1
 
     def close(self) -> None:

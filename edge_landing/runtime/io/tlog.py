@@ -25,6 +25,7 @@ from datetime import datetime
 from typing import Any, Optional, Tuple
 
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.io.flight_record import unix_time
 from edge_landing.runtime.io.mavlink_conn import load_mavutil
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.io.telemetry_feed import (
@@ -39,6 +40,7 @@ log = logging.getLogger(__name__)
 
 START_FORMS = "UNIX seconds (1732406400.25), an ISO 8601 time with its zone (2026-11-24T10:00:03.2Z), or +S " \
               "(seconds after the log's first packet)"
+CLOCK_STEP_S = 1.0      # arrival times that go back further than this: the recorder's clock was stepped
 AUTOPILOT_LOG_SUFFIXES = (".bin", ".log", ".px4log", ".ulg")   # pymavlink would read these as dataflash logs
 _PLAUSIBLE_UNIX_S = (946684800.0, 4102444800.0)   # 2000-01-01 .. 2100-01-01: a tlog's arrival clock is UTC
 
@@ -100,6 +102,7 @@ class TlogTelemetry:
         self.peer: Optional[Tuple[int, int]] = None
         self.counts = {"packets": 0, "fed": 0, "gimbal_reports": 0, "before_autopilot": 0, "other_senders": 0}
         self.ended = False
+        self._last_unix_s, self._step_said = -math.inf, False
         try:
             self._pending = self._first_packet()
             self.first_unix_s = float(self._pending._timestamp)
@@ -144,6 +147,7 @@ class TlogTelemetry:
         while self._pending is not None and float(self._pending._timestamp) <= until_unix_s:
             msg, self._pending = self._pending, self._next()
             self.counts["packets"] += 1
+            self._check_clock(float(msg._timestamp))
             fed += self._handle(telemetry, msg, float(msg._timestamp) + local_offset_s)
         if self._pending is None and not self.ended:
             self.ended = True
@@ -153,6 +157,16 @@ class TlogTelemetry:
             log.info("--tlog %s: the log ended (%d packets, %d of them the autopilot's telemetry); later frames have "
                      "no telemetry", self.config.path, self.counts["packets"], self.counts["fed"])
         return fed
+
+    def _check_clock(self, unix_s: float) -> None:
+        """Said once: a log whose arrival clock went back (a ground station's wall clock stepped in flight). The
+        packets after the step are read as they come; their arrival times no longer match the frames'."""
+        if unix_s < self._last_unix_s - CLOCK_STEP_S and not self._step_said:
+            self._step_said = True
+            log.warning("--tlog %s: the log's clock went back %.1f s at packet %d (the recorder's wall clock was set "
+                        "in flight?); telemetry after it is mistimed against the video", self.config.path,
+                        self._last_unix_s - unix_s, self.counts["packets"])
+        self._last_unix_s = max(self._last_unix_s, unix_s)
 
     def _handle(self, telemetry: TelemetryBuffer, msg: Any, arrival_s: float) -> int:
         sender = (int(msg.get_srcSystem()), int(msg.get_srcComponent()))
@@ -183,8 +197,8 @@ class TlogTelemetry:
 
 class TlogWriter:
     """Writes what a link receives as a .tlog (edge-run --flight-record): each packet's bytes as they arrived, after
-    its arrival time on the UNIX clock (8 bytes, big-endian µs). Written from the link's thread only; buffered, and
-    every packet written is on disk once ``close`` returns."""
+    its arrival time on the UNIX clock (8 bytes, big-endian µs; ``flight_record.unix_time``, as the frames' times).
+    Written from the link's thread only; buffered, and every packet written is on disk once ``close`` returns."""
 
     def __init__(self, path: str):
         self.path = path
@@ -196,7 +210,7 @@ class TlogWriter:
         raw = msg.get_msgbuf()
         if not raw or self._file is None:
             return
-        now = time.time() if arrival_unix_s is None else arrival_unix_s
+        now = unix_time(time.monotonic()) if arrival_unix_s is None else arrival_unix_s
         try:
             self._file.write(struct.pack(">Q", int(now * 1e6)) + bytes(raw))
         except (OSError, ValueError) as exc:
