@@ -105,3 +105,24 @@ def test_focus_candidates_take_the_best_spots_that_are_far_enough_apart():
     np.testing.assert_allclose(focus_candidates(view, first, (0.0, 0.0), config, count=2), picks[:2])
     near_first = focus_candidates(view, np.array([6.0, 6.0, 1.0]), (0.0, 0.0), config, separation_m=40.0)
     np.testing.assert_allclose(near_first, [[6.0, 6.0, 1.0]])   # everything lies within 40 m of the first
+
+
+def test_a_confirmed_spot_lies_at_the_level_geometry_measured_when_the_networks_depth_is_far_off():
+    """The network's depth 60 % too long (a grazing view, a scale gone wrong) puts the ground 15 m below where it
+    is. Geometry measured that ground: the target's level is geometry's, so its direction points at the real
+    ground (an autopilot that takes only the direction, ArduPilot, would otherwise land metres short of the spot)."""
+    world = _flat_world([[200.0, 200.0, 1.0, 1.0, 1.0]])       # (one box, far out of view: the helper needs one)
+    path = [(-14.0 + 0.3 * k, -3.0 + 2.0 * math.sin(0.2 * k), -25.0) for k in range(50)]
+    fusers = {"guarded": LandingFuser(FusionConfig(), INTR, MOUNT),
+              "off": LandingFuser(FusionConfig(max_level_disagreement_m=math.inf), INTR, MOUNT)}
+    downs: dict = {name: [] for name in fusers}
+    for k, t, r, state in _frames(world, path):
+        pred = lying_prediction(INTR, MOUNT, state, k)
+        pred = replace(pred, depth_m=pred.depth_m * 1.6)
+        for name, fuser in fusers.items():
+            target = fuser.update(pred, state, t, r.rgb)
+            if target.valid:
+                downs[name].append((float(target.position_ned_m[2]), target.evidence))
+    assert len(downs["guarded"]) >= 5 and len(downs["off"]) >= 5
+    assert all(abs(d) < 0.5 and "level from geometry" in e for d, e in downs["guarded"]), downs["guarded"][:3]
+    assert all(d > 10.0 for d, _ in downs["off"])               # the network's own level: 15 m under the field

@@ -263,7 +263,8 @@ def test_cell_recall_tells_obstacles_at_a_step_from_the_middle_of_a_wide_roof():
     def counts(measured: np.ndarray) -> tuple[int, ...]:
         det = np.where(measured, np.float32(0.3), np.float32(np.inf))
         full = np.ones((size, size), bool)
-        geo = GeometryView(0.0, 0.5, full, full, det, np.full((size, size), np.nan, np.float32), np.zeros((size, size)))
+        nan = np.full((size, size), np.nan, np.float32)
+        geo = GeometryView(0.0, 0.5, full, full, det, nan, np.zeros((size, size)), nan)
         out = cell_recall(world, SimpleNamespace(geometry=geo, grid=grid), 40.0)
         assert out is not None
         return out

@@ -48,6 +48,9 @@ class FusionConfig:
     allow_unconfirmed: bool = False               # send network-only spots when geometry cannot confirm
     confirm_on_horizontal: bool = True            # geometry-clear cells HVO calls horizontal may be confirmed
                                                   # without the depth flatness tests (fusion.confirm, §11)
+    # A confirmed spot whose level by the network's depth is farther than this from the level motion geometry
+    # measured there is placed at geometry's (the network's depth at a grazing angle can be tens of metres off).
+    max_level_disagreement_m: float = 2.0
     motion: MotionConfig = MotionConfig()
 
     def __post_init__(self) -> None:

@@ -206,6 +206,12 @@ class GeometryConfirmation:
                     f"(baseline too short for the range){tail}")
         return f"unconfirmed: geometry not clear around the spot (clearance){tail}"
 
+    def level_m(self, choice: Choice, view: Optional[GridView]) -> float:
+        """NED down of the surface that confirmed the spot's geometry cell, as measured there (NaN without)."""
+        geo = self.view
+        cell = None if geo is None or view is None else view.cell_of(choice.north_m, choice.east_m)
+        return math.nan if cell is None or geo is None or not geo.clear[cell] else float(geo.clear_down_m[cell])
+
     def figures(self, choice: Choice, view: Optional[GridView]) -> tuple[float, float, float]:
         """(baseline, detectable height, age of confirmation) of the spot's geometry cell (NaN without)."""
         geo = self.view

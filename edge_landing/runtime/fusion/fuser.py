@@ -330,6 +330,11 @@ class LandingFuser:
                      evidence: str = "") -> Target:
         cfg = self.config
         point = np.array([choice.north_m, choice.east_m, choice.down_m], dtype=np.float64)
+        level = self._confirm.level_m(choice, self._view) if position is not None else math.nan
+        if abs(point[2] - level) > cfg.max_level_disagreement_m:   # (False for NaN: no geometry level there)
+            # The network proposes the spot; its level is geometry's where the two disagree grossly.
+            evidence += f"; level from geometry (the network's depth put it {point[2] - level:+.1f} m down)"
+            point[2] = level
         rel = point - position if position is not None else point
         aim = aim_from_offset(rel, pose[0], choice.clearance_m, pose[1])
         clear_used = min(choice.clearance_m, cfg.clearance_saturation_m)

@@ -46,7 +46,8 @@ class GeometryView:
     it (no step between two clear surfaces: ``_level_steps``); ``obstacle``: something at least that
     tall was seen; ``detectable_m``: the smallest height detectable there with the evidence fused within the
     memory (inf: never measured); ``baseline_m``: the baseline of the frame that last confirmed the cell (NaN: never);
-    ``clear_age_s``: time since that confirmation (inf: never).
+    ``clear_age_s``: time since that confirmation (inf: never); ``clear_down_m``: the NED down of the surface that
+    last confirmed it, measured against that pair's ground plane (NaN: never).
     """
 
     time_s: float
@@ -56,6 +57,7 @@ class GeometryView:
     detectable_m: np.ndarray
     baseline_m: np.ndarray
     clear_age_s: np.ndarray
+    clear_down_m: np.ndarray
 
 
 class GeometryGrid:
@@ -269,6 +271,7 @@ class GeometryGrid:
         age = np.full((rows, cols), np.inf)
         base = np.full((rows, cols), np.nan, np.float32)
         clear = np.zeros((rows, cols), dtype=bool)
+        down = np.full((rows, cols), np.nan, np.float32)
         box = self._box
         v = None
         if box is not None:
@@ -289,11 +292,12 @@ class GeometryGrid:
                 if not math.isfinite(now_s):       # (with a finite time, never-confirmed cells come out +inf already)
                     since[~np.isfinite(since)] = np.inf
                 base[v] = self._clear_base[g]
+                down[v] = self._clear_down[g]
         obstacle = cv2.dilate(high.view(np.uint8), self._grow).astype(bool)
         if v is not None:       # only cells inside the evidence box can be clear (age is inf outside)
             clear[v] = (age[v] <= self.memory_s) & ~obstacle[v]
             clear[v] &= ~self._steps_now(g, clear[v])
-        return GeometryView(now_s, self.obstacle_height_m, clear, obstacle, det, base, age)
+        return GeometryView(now_s, self.obstacle_height_m, clear, obstacle, det, base, age, down)
 
     def _fused_now(self, g: tuple[slice, slice], now_s: float) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_fused_evidence` on array cells ``g`` with the single-pair heights still within the memory at
