@@ -206,16 +206,18 @@ class GeometryConfirmation:
                     f"(baseline too short for the range){tail}")
         return f"unconfirmed: geometry not clear around the spot (clearance){tail}"
 
+    def _cell(self, choice: Choice, view: Optional[GridView]) -> Optional[tuple[int, int]]:
+        """The spot's cell in the geometry view (None without one)."""
+        return None if self.view is None or view is None else view.cell_of(choice.north_m, choice.east_m)
+
     def level_m(self, choice: Choice, view: Optional[GridView]) -> float:
         """NED down of the surface that confirmed the spot's geometry cell, as measured there (NaN without)."""
-        geo = self.view
-        cell = None if geo is None or view is None else view.cell_of(choice.north_m, choice.east_m)
+        geo, cell = self.view, self._cell(choice, view)
         return math.nan if cell is None or geo is None or not geo.clear[cell] else float(geo.clear_down_m[cell])
 
     def figures(self, choice: Choice, view: Optional[GridView]) -> tuple[float, float, float]:
         """(baseline, detectable height, age of confirmation) of the spot's geometry cell (NaN without)."""
-        geo = self.view
-        cell = None if geo is None or view is None else view.cell_of(choice.north_m, choice.east_m)
+        geo, cell = self.view, self._cell(choice, view)
         if cell is None or geo is None:
             return math.nan, math.nan, math.nan
         return float(geo.baseline_m[cell]), float(geo.detectable_m[cell]), float(geo.clear_age_s[cell])
