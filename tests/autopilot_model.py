@@ -9,7 +9,8 @@ What it models, from ArduPilot's documented precision-landing behaviour (docs/cl
 - HEARTBEAT 1 Hz (MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA, ArduCopter mode numbers); ATTITUDE,
   GLOBAL_POSITION_INT (relative_alt), LOCAL_POSITION_NED, DISTANCE_SENSOR (orientation 25, cm) at 20 Hz with
   ``time_boot_ms``; EKF_STATUS_REPORT (a healthy EKF with GPS) with them; COMMAND_ACK for every COMMAND_LONG;
-  TIMESYNC answered (``tc1`` = its boot clock in ns, ``ts1`` echoed, as GCS_Common.cpp does);
+  TIMESYNC answered (``tc1`` = its boot clock in ns, ``ts1`` echoed, as GCS_Common.cpp does); PARAM_REQUEST_READ
+  answered for its precision-landing parameters (set up for a MAVLink companion), as GCS_Param.cpp does;
   STATUSTEXT on estimator events.
 - LANDING_TARGET: frame BODY_FRD (12) or LOCAL_FRD only ("Plnd: Frame not supported" otherwise),
   ``position_valid = 1`` and ``distance > 0``; only the direction (x, y, z)/|.| is used, rotated by the attitude
@@ -35,6 +36,7 @@ from typing import Deque, List, Optional, Tuple
 
 import numpy as np
 
+from edge_landing.benchmarks.autopilot_params import PRECLAND_PARAMS, send_param
 from edge_landing.runtime.core.camera import Attitude
 from edge_landing.runtime.io.mavlink_link import load_mavutil
 from edge_landing.sim import build_world
@@ -205,6 +207,14 @@ class AutopilotModel:
             self._landing_target(msg, now_s)
         elif kind == "TIMESYNC" and msg.tc1 == 0:   # ArduPilot answers with its boot clock at receipt, in ns
             conn.mav.timesync_send(int((time.monotonic() - self.boot_s) * 1e9), msg.ts1)
+        elif kind == "PARAM_REQUEST_READ":
+            self._param(conn, str(msg.param_id).rstrip("\x00"))
+
+    def _param(self, conn, name: str) -> None:
+        """Its precision-landing parameters, as ArduPilot answers (benchmarks.autopilot_params)."""
+        params = {**PRECLAND_PARAMS, "PLND_LAG": self.cfg.plnd_lag_s, "PLND_XY_DIST_MAX": self.cfg.xy_dist_max_m}
+        if name in params:
+            send_param(conn.mav, name, params)
 
     def _command(self, msg) -> bool:
         m = self.mavutil.mavlink

@@ -7,15 +7,21 @@ to send; :meth:`healthy` sends what a well-behaved ArduPilot would (HEARTBEAT, A
 GLOBAL_POSITION_INT), with ``time_boot_ms`` from this fake's own clock. Like ArduPilot (GCS_Common.cpp,
 handle_timesync) it answers a TIMESYNC request with ``tc1`` = that clock at the request's arrival, in ns, and
 ``ts1`` echoed; ``timesync`` = False makes it ignore them, ``timesync_delay_s`` holds each answer back.
+Like ArduPilot (GCS_Param.cpp; benchmarks.autopilot_params) it answers PARAM_REQUEST_READ by name from
+``params`` (a precision-landing setup that is right, by default); ``params = None`` ignores the requests.
+``set_param`` broadcasts the new value as ArduPilot does after a set; ``reboot`` restarts its boot clock.
 """
 from __future__ import annotations
 
 import math
 import threading
 import time
-from typing import Any, Callable, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
+from edge_landing.benchmarks.autopilot_params import PRECLAND_PARAMS, answer_param_request, send_param
 from edge_landing.runtime.io.mavlink_conn import load_mavutil
+
+__all__ = ["FakeAutopilot", "PRECLAND_PARAMS", "answer_param_request"]
 
 Script = Callable[["FakeAutopilot", float], None]
 
@@ -34,6 +40,8 @@ class FakeAutopilot:
         self.timesync = True                             # answer TIMESYNC requests (ArduPilot and PX4 do)
         self.timesync_delay_s = 0.0
         self._answers: List[Tuple[float, int, int]] = []  # (due monotonic s, tc1 ns, ts1)
+        self.params: Optional[Dict[str, float]] = dict(PRECLAND_PARAMS)   # None: PARAM_REQUEST_READ is ignored
+        self._param_answers: List[str] = []
         self._t0 = time.monotonic()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -70,7 +78,25 @@ class FakeAutopilot:
             tc1_ns = int((now - self._t0) * 1e9 * self.clock_rate) + 1_000_000
             self._answers.append((now + self.timesync_delay_s, tc1_ns, int(msg.ts1)))
 
+    def set_param(self, name: str, value: float) -> None:
+        """A parameter set (from a ground station): stored and broadcast, as ArduPilot does."""
+        assert self.params is not None
+        self.params[name] = value
+        self._param_answers.append(name)
+
+    def reboot(self) -> None:
+        """The boot clock starts again (parameters are kept, as ArduPilot keeps them in storage)."""
+        self._t0 = time.monotonic()
+
+    def _on_param_request(self, msg: Any) -> None:
+        name = str(msg.param_id).rstrip("\x00")
+        if self.params is not None and name in self.params:
+            self._param_answers.append(name)
+
     def _send_answers(self, now: float) -> None:
+        names, self._param_answers = self._param_answers, []
+        for name in names if self.params is not None else []:
+            send_param(self.conn.mav, name, self.params)
         due = [a for a in self._answers if a[0] <= now]
         self._answers = [a for a in self._answers if a[0] > now]
         for _, tc1, ts1 in due:
@@ -101,10 +127,12 @@ class FakeAutopilot:
                         self.heard_s = now
                     if msg.get_type() == "TIMESYNC":
                         self._on_timesync(msg, now)
+                    elif msg.get_type() == "PARAM_REQUEST_READ":
+                        self._on_param_request(msg)
             else:
                 time.sleep(0.005)
             now = time.monotonic()
-            if self._answers and self._connected():
+            if (self._answers or self._param_answers) and self._connected():
                 try:
                     self._send_answers(now)
                 except Exception as exc:  # a send into a closed socket: note it, keep the fake alive

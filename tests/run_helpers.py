@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from edge_landing.benchmarks.flat_model import flat_ground_model, ground_plane_depth
+from tests.fake_autopilot import answer_param_request
 
 __all__ = ["flat_ground_model", "ground_plane_depth"]  # re-exported: the tests import them from here
 
@@ -51,15 +52,18 @@ def free_tcp_port() -> int:
 
 class LoopbackAutopilot:
     """A pymavlink peer on ``udpin:127.0.0.1:PORT``: records every message; optionally plays an autopilot
-    (HEARTBEAT + ATTITUDE + LOCAL_POSITION_NED + GLOBAL_POSITION_INT at ``rate_hz``) once edge-run is heard."""
+    (HEARTBEAT + ATTITUDE + LOCAL_POSITION_NED + GLOBAL_POSITION_INT at ``rate_hz``) once edge-run is heard.
+    As ``ardupilot`` (TEST DOUBLE) it answers PARAM_REQUEST_READ for a right precision-landing setup, as
+    tests.fake_autopilot does."""
 
     def __init__(self, port: int, telemetry: bool = False, position_ned=(5.0, -3.0, -10.0), yaw_rad: float = 0.0,
-                 rate_hz: float = 50.0):
+                 rate_hz: float = 50.0, autopilot: str = "ardupilot"):
         from edge_landing.runtime.io.mavlink_link import load_mavutil
 
         self.mavutil = load_mavutil()
         self.conn = self.mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1, source_component=1)
         self.telemetry, self.position_ned, self.yaw_rad, self.rate_hz = telemetry, position_ned, yaw_rad, rate_hz
+        self.autopilot = autopilot
         self.messages: List = []
         self.arrivals: List[float] = []
         self._stop = threading.Event()
@@ -86,12 +90,15 @@ class LoopbackAutopilot:
             if msg is not None and msg.get_type() != "BAD_DATA":
                 self.messages.append(msg)
                 self.arrivals.append(time.monotonic())
+                if self.autopilot == "ardupilot" and self.conn.clients:
+                    answer_param_request(self.conn.mav, msg)
             now = time.monotonic()
             if self.telemetry and self.conn.clients and now >= next_send:
                 next_send = now + 1.0 / self.rate_hz
                 boot_ms = int((now - self._t0) * 1000)
                 n, e, d = self.position_ned
-                self.conn.mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_PX4, 0, 0, m.MAV_STATE_ACTIVE)
+                kind = m.MAV_AUTOPILOT_ARDUPILOTMEGA if self.autopilot == "ardupilot" else m.MAV_AUTOPILOT_PX4
+                self.conn.mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, kind, 0, 0, m.MAV_STATE_ACTIVE)
                 self.conn.mav.attitude_send(boot_ms, 0.0, 0.0, self.yaw_rad, 0.0, 0.0, 0.0)
                 self.conn.mav.local_position_ned_send(boot_ms, n, e, d, 0.0, 0.0, 0.0)
                 self.conn.mav.global_position_int_send(boot_ms, 0, 0, 0, int(-d * 1000), 0, 0, 0, 0)

@@ -23,6 +23,7 @@ from edge_landing.runtime.io.mavlink_link import (
     load_signing_key,
 )
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
+from tests.fake_autopilot import answer_param_request
 from tests.run_helpers import (
     LoopbackAutopilot,
     flat_assets,
@@ -76,7 +77,7 @@ def test_px4_local_ned_target_agrees_with_the_autopilot_telemetry(assets, yaw_de
     port = free_udp_port()
     pos = (5.0, -3.0, -AGL_M)
     log_path = assets["dir"] / f"px4_{yaw_deg:.0f}_{grid}.jsonl"
-    with LoopbackAutopilot(port, telemetry=True, position_ned=pos, yaw_rad=math.radians(yaw_deg)) as ap:
+    with LoopbackAutopilot(port, telemetry=True, position_ned=pos, yaw_rad=math.radians(yaw_deg), autopilot="px4") as ap:
         # Telemetry flows once the autopilot hears our heartbeat; loop the video for a fixed time.
         assert edge_run(assets, "--loop", "--duration", "2.5", "--mav", f"udpout:127.0.0.1:{port}",
                         "--autopilot", "px4", "--grid", grid, "--log", str(log_path)) == 0
@@ -99,7 +100,7 @@ def test_px4_local_ned_target_agrees_with_the_autopilot_telemetry(assets, yaw_de
 def test_px4_without_local_position_sends_nothing_and_says_why(assets):
     port = free_udp_port()
     log_path = assets["dir"] / "px4_none.jsonl"
-    with LoopbackAutopilot(port) as peer:
+    with LoopbackAutopilot(port, autopilot="px4") as peer:
         assert edge_run(assets, "--mav", f"udpout:127.0.0.1:{port}", "--autopilot", "px4",
                         "--log", str(log_path)) == 0
         time.sleep(0.2)
@@ -245,6 +246,7 @@ def test_udpin_link_answers_a_ground_station_that_connects(assets):
             msg = gcs.recv_match(blocking=True, timeout=0.05)
             if msg is not None:
                 got.append(msg)
+                answer_param_request(gcs.mav, msg)     # its precision-landing setup, as ArduPilot answers
 
     thread = threading.Thread(target=ground_station, daemon=True)
     thread.start()

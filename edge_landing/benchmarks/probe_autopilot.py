@@ -10,7 +10,8 @@ later samples are good but useless, e.g. an unknown height, only the committed s
     python -m edge_landing.benchmarks.probe_autopilot --only silent,nan
 
 The "late-link" probe answers TIMESYNC as ArduPilot does (the others do not, as an autopilot that ignores it)
-and delivers its telemetry 1.5 s late from the end of the healthy phase.
+and delivers its telemetry 1.5 s late from the end of the healthy phase. Every probe answers PARAM_REQUEST_READ
+with a right precision-landing setup; in "setup-changed" a ground station sets PLND_ORIENT to 0 mid-flight.
 """
 from __future__ import annotations
 
@@ -26,6 +27,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Tuple
+
+from edge_landing.benchmarks.autopilot_params import PRECLAND_PARAMS, answer_param_request, send_param
 
 HEALTHY_S = 4.0
 BAD_S = 4.0
@@ -47,6 +50,7 @@ class Peer:
     read: bool = True
     answers_timesync: bool = False   # as ArduPilot does (tc1 = its boot clock in ns); the other probes stay silent
     late: List[Tuple[float, int]] = field(default_factory=list)   # (due, time_boot_ms) held back by the link
+    params: Dict[str, float] = field(default_factory=lambda: dict(PRECLAND_PARAMS))   # answered as ArduPilot does
 
     def ms(self, rate: float = 1.0, offset_ms: float = 0.0) -> int:
         return int((time.monotonic() - self.t0) * 1000 * rate + offset_ms) + 1
@@ -108,6 +112,15 @@ def _late_link(p: Peer, t: float) -> None:
         p.healthy(ms=p.late.pop(0)[1], good=False)
 
 
+def _setup_changed(p: Peer, t: float) -> None:
+    """Telemetry stays healthy, but a ground station sets PLND_ORIENT to 0 (forward): ArduPilot would turn every
+    direction again, so no target may leave (ARCHITECTURE.md §12)."""
+    if p.params["PLND_ORIENT"] != 0.0:
+        p.params["PLND_ORIENT"] = 0.0
+        send_param(p.conn.mav, "PLND_ORIENT", p.params)     # ArduPilot broadcasts a parameter that was set
+    p.healthy(good=False)
+
+
 PROBES: Dict[str, Tuple[Callable[[Peer, float], None], bool, bool]] = {
     # name: (bad phase, over TCP, later targets may only be the committed spot)
     "silent": (_silent, False, False),
@@ -118,6 +131,7 @@ PROBES: Dict[str, Tuple[Callable[[Peer, float], None], bool, bool]] = {
     "unknown-height": (_unknown_height, False, True),
     "tcp-frozen": (_frozen, True, False),
     "late-link": (_late_link, False, False),
+    "setup-changed": (_setup_changed, False, False),
 }
 ANSWERS_TIMESYNC = {"late-link"}
 
@@ -167,6 +181,8 @@ def run_probe(name: str, video: str, model: str) -> Dict[str, Any]:
                     peer.heard_s = peer.heard_s or now
                     if msg.get_type() == "LANDING_TARGET":
                         peer.targets.append((now, msg))
+                    elif answer_param_request(conn.mav, msg, peer.params):
+                        pass
                     elif msg.get_type() == "TIMESYNC" and msg.tc1 == 0 and peer.answers_timesync:
                         conn.mav.timesync_send(int((now - peer.t0) * 1e9) + 1_000_000, msg.ts1)
             else:

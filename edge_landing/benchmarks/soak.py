@@ -25,6 +25,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from edge_landing.benchmarks.autopilot_params import answer_param_request
 from edge_landing.benchmarks.flat_model import flat_ground_model
 from edge_landing.cli.common import CliParser, check_number, check_outputs_spare_inputs, output_file, run_cli
 from edge_landing.runtime.core.camera import Intrinsics, Mount
@@ -104,6 +105,8 @@ class FakeAutopilot:
             msg = self.conn.recv_match(blocking=True, timeout=0.005)
             if msg is not None and msg.get_type() == "LANDING_TARGET":
                 self.targets += 1
+            elif msg is not None:
+                answer_param_request(self.conn.mav, msg)   # a right precision-landing setup, as ArduPilot answers
             now = time.monotonic()
             if self.conn.clients and now >= next_s:
                 next_s = now + 1 / 30

@@ -40,6 +40,7 @@ from edge_landing.cli.run_camera import (
 from edge_landing.cli.run_model import add_model_arguments, choose_files, load_inference  # noqa: F401  (re-exported)
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.io.autopilot_setup import SetupCheck
 from edge_landing.runtime.io.flight_record import TLOG_NAME, FlightRecorder, RecordingSource, check_record_folder
 from edge_landing.runtime.io.gimbal import GimbalSeries, GimbalSource
 from edge_landing.runtime.io.grabber import Grabber
@@ -92,6 +93,7 @@ class RunConfig:
     altitude_scale: bool = True
     mav: Optional[str] = None
     autopilot: Autopilot = Autopilot.ARDUPILOT
+    autopilot_check: SetupCheck = SetupCheck.HOLD   # ArduPilot's PLND_* parameters (io.autopilot_setup)
     mav_sysid: int = 1
     mav_compid: int = 191
     mav_key: Optional[str] = None
@@ -175,6 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
     k = p.add_argument_group("MAVLink")
     k.add_argument("--mav", help="pymavlink connection: udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT, /dev/ttyUSB0,57600")
     k.add_argument("--autopilot", default="ardupilot", help="ardupilot (BODY_FRD targets) or px4 (LOCAL_NED)")
+    k.add_argument("--autopilot-check", default="hold", help="ArduPilot's precision-landing parameters, read once "
+                   "the autopilot is found: hold (default): no target while PLND_ORIENT or PLND_YAW_ALIGN would make "
+                   "ArduPilot turn its direction again; warn: only say what is wrong; off: do not read them")
     k.add_argument("--mav-sysid", type=int, default=1)
     k.add_argument("--mav-compid", type=int, default=191)
     k.add_argument("--mav-key", help="MAVLink 2 signing key file (32 bytes, or 64 hex characters)")
@@ -205,7 +210,8 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      precision=Precision.INT8 if a.int8 else Precision.from_string(a.precision),
                      runtime=RuntimeRequest.from_string(a.runtime),
                      calibration=a.calibration, altitude_scale=not a.no_altitude_scale, mav=a.mav,
-                     autopilot=Autopilot.from_string(a.autopilot), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
+                     autopilot=Autopilot.from_string(a.autopilot),
+                     autopilot_check=SetupCheck.from_string(a.autopilot_check), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
                      mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
                      vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
                      hfov_deg=a.hfov, intrinsics=a.intrinsics, mount_pitch_deg=a.mount_pitch, record=a.record,
@@ -276,7 +282,8 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
             link_telemetry = TelemetryBuffer() if own_telemetry else telemetry
             tlog_out = str(Path(cfg.flight_record) / TLOG_NAME) if cfg.flight_record else ""
             link = MavlinkLink(LinkConfig(cfg.mav, cfg.autopilot, cfg.mav_sysid, cfg.mav_compid, cfg.mav_key,
-                                          target_system=cfg.mav_target_system, tlog_out=tlog_out), link_telemetry).start()
+                                          target_system=cfg.mav_target_system, tlog_out=tlog_out,
+                                          setup_check=cfg.autopilot_check), link_telemetry).start()
             stack.callback(link.stop)
             if own_telemetry:  # said once the link is up, not before a bad --mav is refused
                 log.info("%s: using its own telemetry; the autopilot's is not used",

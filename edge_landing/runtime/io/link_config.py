@@ -8,6 +8,7 @@ from typing import Dict, Optional
 
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.io.autopilot_setup import SetupCheck
 
 __all__ = ["Autopilot", "LinkConfig", "LinkCounts"]
 
@@ -39,6 +40,7 @@ class LinkConfig:
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 5.0
     tlog_out: str = ""             # write every packet received here as a .tlog (edge-run --flight-record)
+    setup_check: SetupCheck = SetupCheck.HOLD   # ArduPilot's PLND_* parameters: read, and hold misplaced targets
 
     def __post_init__(self) -> None:
         # MAVLink packs ids in one byte: a larger one would kill the link thread at its first heartbeat.
@@ -54,7 +56,7 @@ class LinkCounts:
     KEYS = ("targets", "heartbeats", "statustext", "received", "send_errors", "reconnects",
             "skipped_px4_no_position", "dropped_old_targets", "dropped_backed_up", "dropped_not_heard",
             "other_senders", "before_autopilot", "bad_signature", "timesync_requests", "timesync_answers", "noise_bytes",
-            "gimbal_reports")
+            "gimbal_reports", "held_setup")
 
     def __init__(self) -> None:
         self._lock = threading.Lock()

@@ -25,6 +25,7 @@ import numpy as np
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Target, VehicleState
 from edge_landing.runtime.core.target_frames import target_ned
+from edge_landing.runtime.io.autopilot_setup import AutopilotSetup, SetupCheck, SetupConfig
 from edge_landing.runtime.io.link_config import Autopilot, LinkConfig, LinkCounts
 from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: the link's public helpers)
     NET_PREFIXES,
@@ -35,6 +36,7 @@ from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: 
     open_connection,
     unsent_bytes,
 )
+from edge_landing.runtime.io.setup_reader import SetupReader
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.io.telemetry_feed import (  # noqa: F401  (TELEMETRY_MESSAGES re-exported)
     ESTIMATOR_MESSAGES,
@@ -50,6 +52,7 @@ __all__ = ["Autopilot", "LinkConfig", "LinkCounts", "MavlinkLink", "check_url", 
            "NET_PREFIXES", "FRAME_BODY_FRD", "FRAME_LOCAL_NED", "TELEMETRY_MESSAGES"]
 log = logging.getLogger(__name__)
 FRAME_LOCAL_NED, FRAME_BODY_FRD = 1, 12
+HEARTBEAT_AUTOPILOTS = {3: Autopilot.ARDUPILOT, 12: Autopilot.PX4}   # MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_PX4
 TARGET_TYPE_VISION_OTHER = 3
 
 
@@ -79,6 +82,10 @@ class MavlinkLink:
         self._last_answer_s = -math.inf
         self._noise_seen = 0
         self._tlog: Optional[TlogWriter] = None
+        # ArduPilot's precision-landing parameters (autopilot_setup.py); PX4's are not read.
+        check = config.setup_check if config.autopilot is Autopilot.ARDUPILOT else SetupCheck.OFF
+        self.setup = AutopilotSetup(SetupConfig(check)) if check is not SetupCheck.OFF else None
+        self._setup_reader: Optional[SetupReader] = None
 
     # -- life cycle -----------------------------------------------------------------------------------
     def start(self) -> MavlinkLink:
@@ -91,6 +98,8 @@ class MavlinkLink:
         if self.config.key_path:
             self._key = load_signing_key(self.config.key_path)
         self._mavutil = load_mavutil()
+        if self.setup is not None:
+            self._setup_reader = SetupReader(self.setup, self._send, self.send_status, self._mavutil.mavlink)
         if self.config.tlog_out:
             self._tlog = TlogWriter(self.config.tlog_out)
         # Connecting happens in the thread: an endpoint that drops connection attempts never blocks start-up.
@@ -110,6 +119,10 @@ class MavlinkLink:
     def counters(self) -> Dict[str, int]:
         """A snapshot of the link's counters."""
         return self.counts.snapshot()
+
+    def setup_report(self) -> Optional[Dict[str, object]]:
+        """What was read of the autopilot's precision-landing setup (None: not checked; autopilot_setup.py)."""
+        return None if self.setup is None else self.setup.report()
 
     def heard_age_s(self, now_s: Optional[float] = None) -> float:
         """Seconds since the autopilot was last heard (inf if never)."""
@@ -156,6 +169,10 @@ class MavlinkLink:
             frame = FRAME_LOCAL_NED
         else:
             xyz, frame = body, FRAME_BODY_FRD
+        held = self.setup.hold_reason() if self.setup is not None else ""
+        if held:
+            self.counts.add("held_setup")
+            return False, held
         backlog = self._backlog()
         if backlog > self.config.max_unsent_bytes:
             self.counts.add("dropped_backed_up")
@@ -264,6 +281,8 @@ class MavlinkLink:
                 next_heartbeat_s = now + self.config.heartbeat_period_s
             self._request_telemetry(now)
             self._timesync(now)
+            if self._setup_reader is not None and self.peer is not None:
+                self._setup_reader.tick(now, self.peer, self.telemetry.reboots)
             conn = self._conn
             try:
                 msg = conn.recv_match(blocking=True, timeout=0.05)
@@ -365,6 +384,12 @@ class MavlinkLink:
             return
         self.peer = sender
         log.info("autopilot found: system %d component %d; telemetry from any other sender is ignored", *sender)
+        said = HEARTBEAT_AUTOPILOTS.get(int(msg.autopilot))
+        if said is not None and said is not self.config.autopilot:
+            log.warning("the autopilot's HEARTBEAT says it is %s, but edge-run was started with --autopilot %s: "
+                        "targets go out in the form %s reads (%s); check --autopilot", said.value,
+                        self.config.autopilot.value, self.config.autopilot.value,
+                        "LOCAL_NED positions" if self.config.autopilot is Autopilot.PX4 else "BODY_FRD directions")
 
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()
@@ -388,6 +413,9 @@ class MavlinkLink:
         self._last_heard_s = arrival
         if kind == "TIMESYNC":
             self._on_timesync(msg, arrival)
+            return
+        if kind == "PARAM_VALUE" and self._setup_reader is not None:
+            self._setup_reader.on_param_value(msg)
             return
         if feed_telemetry(self.telemetry, msg, arrival, self._mavutil.mavlink) == "telemetry":
             self._last_telemetry_s = arrival

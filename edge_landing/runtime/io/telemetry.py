@@ -325,6 +325,12 @@ class TelemetryBuffer:
             return trips.answered, trips.round_trip_s
 
     # -- queries (pipeline thread) -----------------------------------------------------------------------
+    @property
+    def reboots(self) -> int:
+        """Times the autopilot's clock restarted (a reboot) since this buffer began."""
+        with self._lock:
+            return self._clock.reboots
+
     def last_arrival_s(self) -> float:
         """When the newest accepted attitude arrived (local monotonic seconds; -inf if never)."""
         with self._lock:

@@ -128,6 +128,7 @@ class Pipeline:
             s.camera_faults = self.grabber.faults
             if self.link is not None:
                 s.link = self.link.counters()
+                s.autopilot_setup = self.link.setup_report()
             if self.telemetry is not None:
                 s.rejected_telemetry = self.telemetry.rejected()
         return s

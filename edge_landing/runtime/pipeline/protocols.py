@@ -56,6 +56,8 @@ class TargetSink(Protocol):
 
     def counters(self) -> Dict[str, int]: ...
 
+    def setup_report(self) -> Optional[Dict[str, object]]: ...
+
 
 class Recorder(Protocol):
     """The overlay video (or anything that wants every frame with its outcome)."""

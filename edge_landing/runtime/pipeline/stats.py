@@ -9,7 +9,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Deque, Dict, List, Sequence
+from typing import Any, Deque, Dict, List, Optional, Sequence
 
 import numpy as np
 
@@ -102,6 +102,7 @@ class RunSummary:
     camera_faults: int = 0
     not_fused: int = 0           # frames inferred but not fused (PipelineOptions.fusion_max_hz)
     link: Dict[str, int] = field(default_factory=dict)
+    autopilot_setup: Optional[Dict[str, Any]] = None   # the PLND_* parameters read (io.autopilot_setup)
     rejected_telemetry: Dict[str, int] = field(default_factory=dict)
     times: StageTimes = field(default_factory=StageTimes)
     model_name: str = ""
@@ -126,14 +127,34 @@ class RunSummary:
 
     def plnd_lag_line(self) -> str:
         """What ArduPilot's PLND_LAG should be set to: the median age, at send time, of the pose a target's body
-        vector is expressed in (the newest telemetry when the target has a local position, else its capture)."""
+        vector is expressed in (the newest telemetry when the target has a local position, else its capture),
+        beside the value the autopilot was read to have."""
         p50 = self.times.percentiles_ms("pose_to_send", (50,))[0]
         capture = self.times.percentiles_ms("capture_to_send", (50,))[0]
         if not np.isfinite(p50):
             return "capture-to-send latency: no target was sent"
+        lag_s = min(max(p50 / 1e3, 0.02), 0.25)
+        has = (self.autopilot_setup or {}).get("values", {}).get("PLND_LAG")
+        if has is None:
+            advice = f"with ArduPilot set PLND_LAG = {lag_s:.2f} (0.02-0.25 s, needs a reboot)"
+        elif abs(has - lag_s) <= 0.02:
+            advice = f"the autopilot's PLND_LAG = {has:.2f} matches it"
+        else:
+            advice = f"the autopilot has PLND_LAG = {has:.2f}: set {lag_s:.2f} (0.02-0.25 s, needs a reboot)"
         return (f"capture-to-send latency median {capture:.0f} ms; targets are expressed at a pose {p50:.0f} ms old "
-                f"at send time: with ArduPilot set PLND_LAG = {min(max(p50 / 1e3, 0.02), 0.25):.2f} "
-                f"(0.02-0.25 s, needs a reboot)")
+                f"at send time: {advice}")
+
+    def setup_lines(self) -> List[str]:
+        """The autopilot's precision-landing setup as read, when it was checked."""
+        setup = self.autopilot_setup
+        if setup is None:
+            return []
+        values = " ".join(f"{k}={v:g}" for k, v in setup["values"].items()) or "nothing read"
+        lines = [f"autopilot setup ({setup['check']}): {values}"]
+        lines += [f"  {p}" for p in setup["problems"]]
+        if setup["unanswered"]:
+            lines.append(f"  not answered: {', '.join(setup['unanswered'])}")
+        return lines
 
     def table(self) -> str:
         """A Table 1-style report (images/s, 2 threads) plus per-stage latency."""
@@ -151,5 +172,6 @@ class RunSummary:
         rows.append(f"targets {self.targets}/{self.frames} frames{fused} ({self.held} held from memory), LANDING_TARGET sent "
                     f"{self.sent}, drops {self.drops}, camera faults {self.camera_faults}, link {self.link}, "
                     f"rejected telemetry {self.rejected_telemetry}, stopped by {self.stopped_by or 'end'}")
+        rows += self.setup_lines()
         rows.append(self.plnd_lag_line())
         return "\n".join(rows)
