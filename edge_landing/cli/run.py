@@ -13,6 +13,7 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import signal
 import sys
 import time
@@ -38,6 +39,7 @@ from edge_landing.cli.run_camera import (
     tlog_config,
 )
 from edge_landing.cli.run_model import add_model_arguments, choose_files, load_inference  # noqa: F401  (re-exported)
+from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.io.autopilot_setup import SetupCheck
@@ -106,6 +108,8 @@ class RunConfig:
     hfov_deg: float = 90.0
     intrinsics: Optional[str] = None    # a real camera's calibration (JSON, OpenCV or ROS YAML): replaces hfov_deg
     mount_pitch_deg: float = -45.0
+    mount_roll_deg: float = 0.0
+    mount_yaw_deg: float = 0.0
     gimbal: GimbalSource = GimbalSource.NONE   # mavlink: the camera's orientation as the gimbal reports it, per frame
     record: Optional[str] = None
     flight_record: Optional[str] = None   # a folder: the camera's frames and the link's packets, for a replay
@@ -121,6 +125,12 @@ class RunConfig:
     obstacle_height_m: float = 0.5      # motion geometry must resolve this to confirm a spot (§11)
     allow_unconfirmed: bool = False     # send network-only spots (offline images have no motion)
 
+    @property
+    def mount(self) -> Mount:
+        """The camera's mount as given (--mount-pitch, --mount-roll, --mount-yaw)."""
+        return Mount(pitch_rad=math.radians(self.mount_pitch_deg), roll_rad=math.radians(self.mount_roll_deg),
+                     yaw_rad=math.radians(self.mount_yaw_deg))
+
     def __post_init__(self) -> None:
         check_number("--hold", self.hold_s, 0.0, unit="seconds")
         check_number("--duration", self.duration_s, 0.0, unit="seconds")
@@ -128,6 +138,8 @@ class RunConfig:
         check_number("--margin", self.margin_m, 0.0, unit="metres")
         check_number("--obstacle-height", self.obstacle_height_m, 0.0, 10.0, lo_open=True, unit="metres")
         check_number("--mount-pitch", self.mount_pitch_deg, -90.0, 90.0, unit="degrees")
+        check_number("--mount-roll", self.mount_roll_deg, -45.0, 45.0, unit="degrees")
+        check_number("--mount-yaw", self.mount_yaw_deg, -180.0, 180.0, unit="degrees")
         check_threads("--threads", self.threads)
         if self.fps != 0:
             check_number("--fps", self.fps, 0.1, 240.0, unit="frames/s (0 = the camera's default)")
@@ -214,7 +226,8 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      autopilot_check=SetupCheck.from_string(a.autopilot_check), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
                      mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
                      vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
-                     hfov_deg=a.hfov, intrinsics=a.intrinsics, mount_pitch_deg=a.mount_pitch, record=a.record,
+                     hfov_deg=a.hfov, intrinsics=a.intrinsics, mount_pitch_deg=a.mount_pitch, mount_roll_deg=a.mount_roll,
+                     mount_yaw_deg=a.mount_yaw, record=a.record,
                      flight_record=a.flight_record,
                      gimbal=GimbalSource.from_string(a.gimbal),
                      log_path=a.log_path,
@@ -302,7 +315,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
             raise InputError(f"camera {cfg.camera} gave no frame within 30 s"
                              + (" (the input is empty or unreadable)" if grabber.ended else ""))
         grabber.put_back(first)
-        intrinsics, mount = camera_geometry(grabber, first, cfg.intrinsics, cfg.hfov_deg, cfg.mount_pitch_deg)
+        intrinsics, mount = camera_geometry(grabber, first, cfg.intrinsics, cfg.hfov_deg, cfg.mount)
         sizes = describe_for_model(inference.models[0], first.rgb.shape[:2], fusion_cfg.working_hw)
         print(f"edge-run: {sizes}", file=out, flush=True)
         fuser = LandingFuser(fusion_cfg, intrinsics, mount)

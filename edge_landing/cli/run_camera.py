@@ -45,6 +45,10 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
                      "width, height), OpenCV FileStorage YAML/XML or ROS camera_info YAML, with lens distortion")
     src.add_argument("--mount-pitch", type=float, default=-45.0, help="camera pitch relative to the body, degrees "
                      "(negative = below the horizon)")
+    src.add_argument("--mount-roll", type=float, default=0.0, help="camera roll about its optical axis, "
+                     "degrees (positive: the camera's right side down, as a vehicle rolls)")
+    src.add_argument("--mount-yaw", type=float, default=0.0, help="camera yaw relative to the body's nose, degrees "
+                     "(positive = to the right)")
     src.add_argument("--gimbal", default="none", help="mavlink: the camera is on a gimbal whose orientation comes "
                      "from --mav or --tlog (GIMBAL_DEVICE_ATTITUDE_STATUS), per frame; none (default): --mount-pitch, "
                      "fixed")
@@ -112,11 +116,11 @@ def check_gimbal(gimbal: GimbalSource, mav: Optional[str], camera: str, poses: O
 
 
 def camera_geometry(grabber: Grabber, first: Frame, intrinsics: Optional[str], hfov_deg: float,
-                    mount_pitch_deg: float) -> Tuple[Intrinsics, Mount]:
+                    given_mount: Mount) -> Tuple[Intrinsics, Mount]:
     """Intrinsics at the frame size and the mount: from the synthetic camera when it knows them, else from
-    --intrinsics (a calibration file) or --hfov, and --mount-pitch."""
+    --intrinsics (a calibration file) or --hfov, and --mount-pitch/--mount-roll/--mount-yaw (``given_mount``)."""
     h, w = first.rgb.shape[:2]
-    mount = grabber.mount or Mount(pitch_rad=math.radians(mount_pitch_deg))
+    mount = grabber.mount or given_mount
     if intrinsics:
         intr = fit_to_frame(load_intrinsics(intrinsics), w, h, intrinsics)
         log.info("intrinsics from %s at %dx%d: fx %.1f, fy %.1f, cx %.1f, cy %.1f px, distortion %s", intrinsics,

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.fusion.motion import MotionConfig
+from edge_landing.runtime.fusion.mount_check import MountCheckConfig
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,7 @@ class FusionConfig:
     # measured there is placed at geometry's (the network's depth at a grazing angle can be tens of metres off).
     max_level_disagreement_m: float = 2.0
     motion: MotionConfig = MotionConfig()
+    mount_check: MountCheckConfig = MountCheckConfig()   # the camera's orientation against the images
 
     def __post_init__(self) -> None:
         h, w = self.working_hw

@@ -26,6 +26,7 @@ from edge_landing.runtime.fusion.grid import GridView, clearance_from_mask
 from edge_landing.runtime.fusion.landing import Choice
 from edge_landing.runtime.fusion.motion import POSE_IMAGE, POSE_TELEMETRY, CameraPose, MotionStage
 from edge_landing.runtime.fusion.motion_grid import GeometryGrid, GeometryView
+from edge_landing.runtime.fusion.mount_check import MountCheck, MountEstimate
 
 if TYPE_CHECKING:
     from edge_landing.runtime.fusion.config import FusionConfig
@@ -69,6 +70,8 @@ class GeometryConfirmation:
         self.motion = MotionStage(config.motion, intrinsics, mount)
         self.grid = GeometryGrid(config.cell_m, config.grid_radius_m, config.geometry_memory_s,
                                  config.obstacle_height_m, config.motion.detect_sigmas)
+        self.mount_check = MountCheck(config.mount_check, self.motion.k_cv, mount)
+        self.mount_estimate: Optional[MountEstimate] = None   # the camera's orientation from the images so far
         self.view: Optional[GeometryView] = None
         self.note = ""
         self.ran = False                                      # the last ``run`` ran the motion stage
@@ -79,6 +82,8 @@ class GeometryConfirmation:
     def reset(self) -> None:
         self.grid.clear()
         self.motion.reset()
+        self.mount_check.reset()
+        self.mount_estimate = None
         self.view, self.note, self._last_run_s, self.ran = None, "", None, False
 
     def begin_frame(self) -> None:
@@ -142,6 +147,11 @@ class GeometryConfirmation:
         self.note = "" if result is not None else f"no new geometry ({self.motion.last_reason})"
         if result is not None:
             self.grid.add(result)
+        # The camera's orientation against the images (fusion.mount_check): a fixed mount only (a gimbal's is
+        # reported per frame), with telemetry positions.
+        if position is not None and state is not None and state.camera_mount is None \
+                and self.mount_check.due(t_cap) and self.mount_check.add(self.motion.keyframes, state.attitude.yaw_rad):
+            self.mount_estimate = self.mount_check.estimate()
         return position if position is not None else self.motion.position_ned_m
 
     def confirmed_view(self, view: GridView, use_hvo: bool = True) -> GridView:

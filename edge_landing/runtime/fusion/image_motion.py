@@ -23,7 +23,7 @@ Pure numpy/OpenCV, no I/O, no state: every call is bounded by ``max_features``. 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import cv2
@@ -127,29 +127,11 @@ def _estimate(ref: np.ndarray, cur: np.ndarray, k: np.ndarray, r_ref: np.ndarray
     rot = r_ref.T @ r_cur
     n = r_cur.T @ _DOWN
     t_prior = np.zeros(3) if prior is None or not np.all(np.isfinite(prior)) else r_ref.T @ np.asarray(prior)
-    h_prior = k @ (rot + np.outer(t_prior, n) / d) @ k_inv          # pixels cur -> ref, from the prior
-    pts = _ground_corners(cur, k_inv, n, d, cfg, _overlap_mask(h_prior, cur.shape, cfg.lk_window_px))
-    if pts.shape[0] < cfg.min_inliers:
-        return ImagePose.failed(f"too few features on the ground ({pts.shape[0]} < {cfg.min_inliers})",
-                                features=pts.shape[0])
-    # Track against the reference warped into the current view by the prior's plane homography: what is
-    # left is a small shift, with the ground's perspective change over a long baseline already undone.
-    h, w = cur.shape
-    warped = cv2.warpPerspective(ref, h_prior, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                 borderMode=cv2.BORDER_CONSTANT)
-    found, cur_pts = _track(cur, warped, pts, cfg)
-    tracked = _apply(h_prior, found)
-    n_feat = int(pts.shape[0])
-    if tracked.shape[0] < cfg.min_inliers:
-        return ImagePose.failed(f"too few features tracked ({tracked.shape[0]} of {n_feat})", features=n_feat)
-    hom, mask = cv2.findHomography(cur_pts, tracked, cv2.RANSAC, cfg.ransac_px, maxIters=500, confidence=0.995)
-    if hom is None or mask is None:
-        return ImagePose.failed("degenerate: no homography fits the tracked features", features=n_feat)
-    inl = mask.reshape(-1).astype(bool)
-    share = float(inl.mean())
-    if int(inl.sum()) < cfg.min_inliers or share < cfg.min_inlier_share:
-        return ImagePose.failed(f"no dominant ground plane ({int(inl.sum())} of {tracked.shape[0]} inliers)",
-                                features=n_feat, inliers=int(inl.sum()), inlier_share=share)
+    m = match_ground(ref, cur, k, rot, t_prior, n, d, cfg)
+    n_feat = m.features
+    if m.reason:
+        return ImagePose.failed(m.reason, features=n_feat, inliers=int(m.inliers.sum()), inlier_share=m.inlier_share)
+    cur_pts, tracked, inl, share = m.cur_px, m.ref_px, m.inliers, m.inlier_share
     xc, xr = _normalised(k_inv, cur_pts[inl]), _normalised(k_inv, tracked[inl])
     f = 0.5 * (k[0, 0] + k[1, 1])
     t, res_px, cov = _solve_t(xc, xr, rot, n, d, f, cfg.ransac_px)
@@ -167,6 +149,61 @@ def _estimate(ref: np.ndarray, cur: np.ndarray, k: np.ndarray, r_ref: np.ndarray
     cov = cov * cfg.sigma_inflation ** 2
     sigma = float(math.sqrt(max(float(np.max(np.linalg.eigvalsh(cov))), 0.0)))
     return ImagePose(True, "", delta, sigma, cfg.agl_sigma_rel, n_in, share, med, n_feat, cov)
+
+
+@dataclass(frozen=True)
+class GroundMatches:
+    """Ground features of the current frame (``cur_px``, N×2 pixels) and where they lie in the reference frame
+    (``ref_px``), with the RANSAC homography current -> reference they fit (``homography``, None when none did)
+    and which of them fit it (``inliers``). ``reason`` is empty when the matches are usable (enough features,
+    tracks and inliers: ImagePoseConfig's thresholds)."""
+
+    cur_px: np.ndarray
+    ref_px: np.ndarray
+    homography: Optional[np.ndarray]
+    inliers: np.ndarray
+    features: int
+    reason: str = ""
+
+    @property
+    def inlier_share(self) -> float:
+        return float(self.inliers.mean()) if self.inliers.size else 0.0
+
+
+def match_ground(ref: np.ndarray, cur: np.ndarray, k: np.ndarray, rot: np.ndarray, t_prior: np.ndarray, n: np.ndarray,
+                 d: float, cfg: ImagePoseConfig) -> GroundMatches:
+    """Corners on the current frame's ground tracked into the reference frame, and the dominant plane they fit.
+
+    ``rot``, ``t_prior`` (reference camera frame), ``n`` (current camera frame) and ``d`` give the prior plane
+    homography: the reference is warped into the current view by it, so what is left to track is a small shift
+    with the ground's perspective change over a long baseline already undone. Raises cv2.error on degenerate
+    input (the callers' per-frame paths catch it).
+    """
+    k_inv = np.linalg.inv(k)
+    h_prior = k @ (rot + np.outer(t_prior, n) / d) @ k_inv          # pixels cur -> ref, from the prior
+    none = np.zeros((0, 2), np.float32)
+    pts = _ground_corners(cur, k_inv, n, d, cfg, _overlap_mask(h_prior, cur.shape, cfg.lk_window_px))
+    if pts.shape[0] < cfg.min_inliers:
+        return GroundMatches(none, none, None, np.zeros(0, bool), int(pts.shape[0]),
+                             f"too few features on the ground ({pts.shape[0]} < {cfg.min_inliers})")
+    h, w = cur.shape
+    warped = cv2.warpPerspective(ref, h_prior, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                 borderMode=cv2.BORDER_CONSTANT)
+    found, cur_pts = _track(cur, warped, pts, cfg)
+    tracked = _apply(h_prior, found)
+    n_feat = int(pts.shape[0])
+    if tracked.shape[0] < cfg.min_inliers:
+        return GroundMatches(cur_pts, tracked, None, np.zeros(tracked.shape[0], bool), n_feat,
+                             f"too few features tracked ({tracked.shape[0]} of {n_feat})")
+    hom, mask = cv2.findHomography(cur_pts, tracked, cv2.RANSAC, cfg.ransac_px, maxIters=500, confidence=0.995)
+    if hom is None or mask is None:
+        return GroundMatches(cur_pts, tracked, None, np.zeros(tracked.shape[0], bool), n_feat,
+                             "degenerate: no homography fits the tracked features")
+    inl = mask.reshape(-1).astype(bool)
+    out = GroundMatches(cur_pts, tracked, hom, inl, n_feat)
+    if int(inl.sum()) < cfg.min_inliers or out.inlier_share < cfg.min_inlier_share:
+        return replace(out, reason=f"no dominant ground plane ({int(inl.sum())} of {tracked.shape[0]} inliers)")
+    return out
 
 
 def plane_prediction_sigma(xc: np.ndarray, rot: np.ndarray, t: np.ndarray, n: np.ndarray, d: float,

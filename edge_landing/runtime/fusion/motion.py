@@ -90,6 +90,11 @@ class MotionStage:
         self._chain_delta: Optional[np.ndarray] = None
 
     @property
+    def keyframes(self) -> tuple[Keyframe, ...]:
+        """The keyframe ring, oldest first (the newest is the last frame ``update`` stored)."""
+        return tuple(self._history)
+
+    @property
     def ground_down_m(self) -> Optional[float]:
         """NED down of the local ground last measured (None: not yet; the rangefinder's plane is used)."""
         return None if self._ground is None else self._ground[1]

@@ -7,14 +7,17 @@ from typing import Optional
 from edge_landing.runtime.core.messages import Target
 from edge_landing.runtime.fusion.grid import GridView
 from edge_landing.runtime.fusion.motion_grid import GeometryView
+from edge_landing.runtime.fusion.mount_check import MountEstimate
 
 
 @dataclass(frozen=True)
 class FusionResult:
     """One frame's fusion output. ``grid`` is the snapshot judged for this frame, or None when this frame did
     not reach the grid (invalid prediction, stale frame, ...); readers never reach into the fuser for it.
-    ``geometry``: the motion-geometry evidence on the same cells (ARCHITECTURE.md §11), or None."""
+    ``geometry``: the motion-geometry evidence on the same cells (ARCHITECTURE.md §11), or None. ``mount``: the
+    camera's orientation measured from the images so far (fusion.mount_check), or None while too few pairs agree."""
 
     target: Target
     grid: Optional[GridView] = None
     geometry: Optional[GeometryView] = None
+    mount: Optional[MountEstimate] = None

@@ -24,6 +24,7 @@ from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.messages import Frame, Prediction, Target, TelemetryMatch, VehicleState
 from edge_landing.runtime.core.target_frames import aim_at_pose, aimed, target_ned
 from edge_landing.runtime.fusion.result import FusionResult
+from edge_landing.runtime.pipeline.mount_watch import MountWatch
 from edge_landing.runtime.pipeline.protocols import (
     FrameSource,
     FrameWork,
@@ -84,6 +85,7 @@ class Pipeline:
         self._worker: Optional[threading.Thread] = None
         self._last_fused_s: Optional[float] = None
         self._clock_lag_s = 0.0                 # the newest frame's Frame.clock_lag_s (its clock against ours)
+        self.mount_watch = MountWatch(link.send_status if link is not None else None)
 
     def stop(self, why: str = "request") -> None:
         self.summary.stopped_by = self.summary.stopped_by or why
@@ -129,6 +131,7 @@ class Pipeline:
             if self.link is not None:
                 s.link = self.link.counters()
                 s.autopilot_setup = self.link.setup_report()
+            s.mount_line = self.mount_watch.line()
             if self.telemetry is not None:
                 s.rejected_telemetry = self.telemetry.rejected()
         return s
@@ -200,7 +203,7 @@ class Pipeline:
         target = result.target
         if target.valid and target.position_ned_m is None and state is not None and state.position_ned_m is not None:
             target = replace(target, position_ned_m=target_ned(target, state))  # vehicle position + rotated body
-        return FusionResult(target, result.grid, result.geometry), pred
+        return FusionResult(target, result.grid, result.geometry, result.mount), pred
 
     def _finish(self, work: FrameWork) -> None:
         frame, match = work.frame, work.telemetry
@@ -215,6 +218,7 @@ class Pipeline:
 
         result, pred = self._fuse(work)
         lap("fusion")
+        self.mount_watch.update(result.mount)
         target, said = result.target, ""
         if self.telemetry is not None:
             target, said = self.continuity.step(target, match.state if match.fresh else None, result.grid,

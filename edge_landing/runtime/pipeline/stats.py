@@ -103,6 +103,7 @@ class RunSummary:
     not_fused: int = 0           # frames inferred but not fused (PipelineOptions.fusion_max_hz)
     link: Dict[str, int] = field(default_factory=dict)
     autopilot_setup: Optional[Dict[str, Any]] = None   # the PLND_* parameters read (io.autopilot_setup)
+    mount_line: str = ""         # the camera's orientation measured from the images (pipeline.mount_watch)
     rejected_telemetry: Dict[str, int] = field(default_factory=dict)
     times: StageTimes = field(default_factory=StageTimes)
     model_name: str = ""
@@ -173,5 +174,7 @@ class RunSummary:
                     f"{self.sent}, drops {self.drops}, camera faults {self.camera_faults}, link {self.link}, "
                     f"rejected telemetry {self.rejected_telemetry}, stopped by {self.stopped_by or 'end'}")
         rows += self.setup_lines()
+        if self.mount_line:
+            rows.append(self.mount_line)
         rows.append(self.plnd_lag_line())
         return "\n".join(rows)
