@@ -38,8 +38,9 @@ from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.fusion.image_motion import ImagePoseConfig, match_ground
 from edge_landing.runtime.fusion.keyframes import Keyframe
 from edge_landing.runtime.fusion.motion_config import POSE_TELEMETRY
+from edge_landing.runtime.fusion.turn_fit import PairDirections, angles_deg, refine_with_slope, solve_turn
 
-__all__ = ["MountCheck", "MountCheckConfig", "MountEstimate", "PairDirections", "pair_directions", "solve_turn"]
+__all__ = ["MountCheck", "MountCheckConfig", "MountEstimate", "PairDirections", "pair_directions"]
 
 _DOWN = np.array([0.0, 0.0, 1.0])
 MAX_PLANES = 3          # planes looked for among a pair's tracks (the ground, façades)
@@ -79,25 +80,13 @@ class MountCheckConfig:
             raise InputError(f"mount check needs 3 <= min_pairs <= max_pairs, got {self.min_pairs}, {self.max_pairs}")
 
 
-@dataclass(frozen=True)
-class PairDirections:
-    """One frame pair: the ground's homography as seen (``a``: normalised, current -> reference, scaled so that its
-    middle singular value is 1), the relative rotation ``rot`` and the directions of travel and of the ground's
-    normal as the poses predict them (unit vectors, camera frames), and the vehicle's heading (NED, radians)."""
+# The pairs' own spread misses what the ground's shape adds (it is not one plane; the slope fitted is one number):
+# on the sim's flights the estimate was up to 0.5° off where its spread said 0.1°. Said with every figure.
+GROUND_SHAPE_DEG = 0.5
 
-    a: np.ndarray
-    rot: np.ndarray
-    t_pred: np.ndarray
-    n_pred: np.ndarray
-    heading_rad: float
-    r_nc: np.ndarray          # the current frame's NED <- camera rotation, as the poses give it
 
-    def seen(self, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The directions of travel and of the normal as the camera saw them, with the camera turned by ``delta``
-        (the relative rotation the poses give is then δᵀ R δ)."""
-        u, _, vt = np.linalg.svd(self.a - delta.T @ self.rot @ delta)
-        t, n = u[:, 0], vt[0]
-        return (-t, -n) if n @ self.n_pred < 0 else (t, n)
+def _with_ground(sigma_deg: float) -> float:
+    return math.hypot(sigma_deg, GROUND_SHAPE_DEG)
 
 
 @dataclass(frozen=True)
@@ -153,15 +142,6 @@ class MountEstimate:
         return (f"camera orientation measured from the images ({self.pairs} of {self.kept} frame pairs agree, "
                 f"{self.headings} direction(s) of flight, ground sloped {self.ground_slope_deg:.1f}°): turned "
                 f"{self.turn_deg:.1f}° from the mount and attitude; as a fixed mount: {angles}")
-
-
-# The pairs' own spread misses what the ground's shape adds (it is not one plane; the slope fitted is one number):
-# on the sim's flights the estimate was up to 0.5° off where its spread said 0.1°. Said with every figure.
-GROUND_SHAPE_DEG = 0.5
-
-
-def _with_ground(sigma_deg: float) -> float:
-    return math.hypot(sigma_deg, GROUND_SHAPE_DEG)
 
 
 def _level() -> np.ndarray:
@@ -253,77 +233,6 @@ def _plane_homography(cur_px: np.ndarray, ref_px: np.ndarray, k: np.ndarray, k_i
     return out
 
 
-def solve_turn(pairs: Sequence[PairDirections], delta: Optional[np.ndarray] = None) -> np.ndarray:
-    """δ (3×3) that best turns the seen directions (read with the camera turned by ``delta``, default none) onto
-    the predicted ones: predicted ≈ δ @ seen (Kabsch)."""
-    start = np.eye(3) if delta is None else delta
-    seen = np.concatenate([np.stack(p.seen(start)) for p in pairs])
-    pred = np.concatenate([np.stack([p.t_pred, p.n_pred]) for p in pairs])
-    u, _, vt = np.linalg.svd(pred.T @ seen)
-    fix = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(u @ vt)))])
-    out: np.ndarray = u @ fix @ vt
-    return out
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-PRIOR_RAD = math.radians(10.0)     # what the least squares assumes of the turn and the slope before the pairs
-# A direction read from tracked features is not better than this (the ground is not a plane to the pixel, tracks
-# are not exact): without the floor, pairs that agree by chance would make a confounded turn look certain.
-SPREAD_FLOOR_RAD = math.radians(0.3)
-
-
-def refine_with_slope(pairs: Sequence[PairDirections], delta: np.ndarray, steps: int = 3
-                      ) -> tuple[np.ndarray, np.ndarray, float]:
-    """δ refined together with the ground's slope, by linearised least squares: (δ, covariance of the turn's
-    rotation vector in rad², slope in degrees).
-
-    The seen normal is the sloped ground's, R_ncᵀ (down + σ) with σ = (σ_n, σ_e, 0) in NED, turned by δᵀ; the
-    direction of travel has no slope in it. Flown one way, the direction of travel separates the camera's pitch
-    from the slope along the track; across the track, roll and slope stay confounded until another heading
-    is flown: a weak prior (``PRIOR_RAD`` on each) splits what the pairs cannot, and the covariance then says
-    so (the turn's σ stays near the prior's). Each kind of direction is weighted by its own residual spread."""
-    cov = np.full((3, 3), np.inf)
-    sigma_ne = np.zeros(2)
-    w_t = w_n = 1.0
-    for _ in range(steps):
-        rows, rhs = [], []
-        for p in pairs:
-            t_s, n_s = (delta @ v for v in p.seen(delta))
-            rows += [np.hstack([-_skew(t_s), np.zeros((3, 2))]), np.hstack([-_skew(n_s), -p.r_nc.T[:, :2]])]
-            rhs += [p.t_pred - t_s, p.n_pred - n_s]
-        a_mat, b = np.vstack(rows), np.concatenate(rhs)
-        w = np.tile(np.concatenate([np.full(3, w_t), np.full(3, w_n)]), len(pairs))
-        # The prior: the total turn (this step's increment added to the turn so far) and the slope near zero.
-        turn_so_far = cv2.Rodrigues(delta)[0].reshape(3)
-        prior_a = np.eye(5) / PRIOR_RAD
-        prior_b = np.concatenate([-turn_so_far, np.zeros(2)]) / PRIOR_RAD
-        sw = np.sqrt(w)
-        x, *_ = np.linalg.lstsq(np.vstack([a_mat * sw[:, None], prior_a]), np.concatenate([b * sw, prior_b]),
-                                rcond=None)
-        res = (a_mat @ x - b).reshape(-1, 2, 3)
-        # Each kind's robust residual spread: the next step's weights and the covariance's scale.
-        s_t = max(1.4826 * float(np.median(np.linalg.norm(res[:, 0], axis=1))), SPREAD_FLOOR_RAD)
-        s_n = max(1.4826 * float(np.median(np.linalg.norm(res[:, 1], axis=1))), SPREAD_FLOOR_RAD)
-        w_t, w_n = 1.0 / s_t ** 2, 1.0 / s_n ** 2
-        delta = cv2.Rodrigues(x[:3].reshape(3, 1))[0] @ delta
-        sigma_ne = x[3:]
-        w = np.tile(np.concatenate([np.full(3, w_t), np.full(3, w_n)]), len(pairs))
-        # Two of a direction's three residual components carry information (it is a unit vector).
-        cov = np.linalg.inv((a_mat * w[:, None]).T @ a_mat / 1.5 + prior_a.T @ prior_a)[:3, :3]
-    return delta, cov, math.degrees(math.atan(float(np.linalg.norm(sigma_ne))))
-
-
-def _angles_deg(delta: np.ndarray, turns: np.ndarray) -> np.ndarray:
-    """Angle (degrees) between ``delta`` and each of ``turns`` (N×3×3)."""
-    rel = np.einsum("ji,njk->nik", delta, turns)          # δᵀ δ_i
-    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    out: np.ndarray = np.degrees(np.arccos(cos))
-    return out
-
-
 class MountCheck:
     """Pairs of the motion stage's keyframes, now and then; the camera's turn from what the poses say."""
 
@@ -392,12 +301,12 @@ class MountCheck:
             return None
         turns = np.stack([solve_turn([p]) for p in pairs])
         # The consensus: the pair whose turn the most others agree with, then every pair that agrees with it.
-        agree = np.stack([_angles_deg(t, turns) <= cfg.agree_deg for t in turns])
+        agree = np.stack([angles_deg(t, turns) <= cfg.agree_deg for t in turns])
         members = agree[int(np.argmax(agree.sum(axis=1)))]
         delta = solve_turn([p for p, m in zip(pairs, members) if m])
         for _ in range(2):   # the relative rotations read with the turn found so far, and the agreeing pairs again
             turns = np.stack([solve_turn([p], delta) for p in pairs])
-            members = _angles_deg(delta, turns) <= cfg.agree_deg
+            members = angles_deg(delta, turns) <= cfg.agree_deg
             if int(members.sum()) < cfg.min_pairs:
                 return None
             delta = solve_turn([p for p, m in zip(pairs, members) if m], delta)

@@ -46,6 +46,7 @@ from edge_landing.runtime.io.telemetry_feed import (  # noqa: F401  (TELEMETRY_M
     feed_telemetry,
     is_autopilot_heartbeat,
 )
+from edge_landing.runtime.io.timesync_client import TimesyncClient
 from edge_landing.runtime.io.tlog import TlogWriter
 
 __all__ = ["Autopilot", "LinkConfig", "LinkCounts", "MavlinkLink", "check_url", "load_mavutil", "load_signing_key",
@@ -77,9 +78,7 @@ class MavlinkLink:
         self._skip_reported = False
         self._last_telemetry_s = -math.inf
         self._last_request_s = -math.inf
-        self._next_timesync_s = 0.0
-        self._timesync_said = False
-        self._last_answer_s = -math.inf
+        self._timesync: Optional[TimesyncClient] = None
         self._noise_seen = 0
         self._tlog: Optional[TlogWriter] = None
         # ArduPilot's precision-landing parameters (autopilot_setup.py); PX4's are not read.
@@ -98,6 +97,7 @@ class MavlinkLink:
         if self.config.key_path:
             self._key = load_signing_key(self.config.key_path)
         self._mavutil = load_mavutil()
+        self._timesync = TimesyncClient(self.telemetry, self.counts, self._send, self._mavutil.mavlink)
         if self.setup is not None:
             self._setup_reader = SetupReader(self.setup, self._send, self.send_status, self._mavutil.mavlink)
         if self.config.tlog_out:
@@ -280,7 +280,8 @@ class MavlinkLink:
                 self._heartbeat()
                 next_heartbeat_s = now + self.config.heartbeat_period_s
             self._request_telemetry(now)
-            self._timesync(now)
+            if self._timesync is not None and self.peer is not None:
+                self._timesync.tick(now)
             if self._setup_reader is not None and self.peer is not None:
                 self._setup_reader.tick(now, self.peer, self.telemetry.reboots)
             conn = self._conn
@@ -345,37 +346,6 @@ class MavlinkLink:
             self._send(m.MAVLink_command_long_message(self.peer[0], self.peer[1], m.MAV_CMD_SET_MESSAGE_INTERVAL,
                                                       0, msg_id, interval, 0, 0, 0, 0, 0))
 
-    def _timesync(self, now: float) -> None:
-        """A TIMESYNC request to the autopilot every ``timesync.period_s``: its answers tell how late telemetry arrives
-        (``timesync.py``). Said once whether it answers: without answers a steady delay looks like a clock offset."""
-        period = self.telemetry.config.timesync.period_s
-        if self.peer is None or now < self._next_timesync_s:
-            return
-        self._next_timesync_s = now + period
-        answered, round_trip = self.telemetry.round_trips()
-        if not self._timesync_said and (answered or self.counts["timesync_requests"] * period >= 3.0):
-            self._timesync_said = True
-            if answered:
-                log.info("the autopilot answers TIMESYNC (round trip %.0f ms): telemetry that arrives late is "
-                         "refused by its real age", 1000.0 * (round_trip or 0.0))
-            else:
-                log.warning("the autopilot does not answer TIMESYNC: telemetry delayed steadily on the link cannot "
-                            "be told from a clock offset (one-way time stamps only)")
-        ts1 = self.telemetry.timesync_request(time.monotonic())
-        if self._send(self._mavutil.mavlink.MAVLink_timesync_message(0, ts1)):
-            self.counts.add("timesync_requests")
-
-    def _on_timesync(self, msg: Any, arrival: float) -> None:
-        """An answer to our request, or the autopilot's own request (answered with this clock, in ns, as a
-        MAVLink component should: PX4 converts our LANDING_TARGET time stamps with it)."""
-        if int(msg.tc1) != 0:
-            if self.telemetry.timesync_reply(int(msg.tc1), int(msg.ts1), arrival):
-                self.counts.add("timesync_answers")
-            return
-        if arrival - self._last_answer_s >= 0.05:      # a flood of requests gets at most 20 answers a second
-            self._last_answer_s = arrival
-            self._send(self._mavutil.mavlink.MAVLink_timesync_message(int(arrival * 1e9), int(msg.ts1)))
-
     def _choose_peer(self, msg: Any, sender: Tuple[int, int]) -> None:
         """The first autopilot-type HEARTBEAT (of ``target_system`` when given) names the one autopilot."""
         if not is_autopilot_heartbeat(msg):
@@ -412,7 +382,8 @@ class MavlinkLink:
         arrival = time.monotonic()
         self._last_heard_s = arrival
         if kind == "TIMESYNC":
-            self._on_timesync(msg, arrival)
+            if self._timesync is not None:
+                self._timesync.on_message(msg, arrival)
             return
         if kind == "PARAM_VALUE" and self._setup_reader is not None:
             self._setup_reader.on_param_value(msg)
