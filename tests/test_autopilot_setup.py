@@ -27,9 +27,9 @@ def _read(setup: AutopilotSetup, **changes: float) -> AutopilotSetup:
 
 def test_a_right_setup_holds_nothing_and_says_so():
     setup = AutopilotSetup()
-    assert setup.hold_reason().startswith("held: reading the autopilot's precision-landing setup (PLND_ENABLED")
+    assert setup.hold_reason(0.0).startswith("held: reading the autopilot's precision-landing setup (PLND_ENABLED")
     _read(setup)
-    assert setup.read_all() and setup.problems() == [] and setup.hold_reason() == ""
+    assert setup.read_all() and setup.problems() == [] and setup.hold_reason(0.0) == ""
     assert setup.describe().endswith("LANDING_TARGET is used as edge-run sends it")
     assert "PLND_ORIENT=25" in setup.describe() and setup.value("PLND_LAG") == pytest.approx(0.02)
 
@@ -41,27 +41,27 @@ def test_a_setting_that_turns_the_direction_holds_one_that_ignores_targets_warns
     [problem] = setup.problems()
     assert problem.rule.name == name and f"{name} is {value:g}" in problem.line
     assert len(f"{problem.short}: edge targets held") <= 50          # what the ground station's STATUSTEXT shows
-    assert bool(setup.hold_reason()) == held
+    assert bool(setup.hold_reason(0.0)) == held
     if held:
-        assert setup.hold_reason().startswith(f"held: the autopilot's {name} is {value:g}")
-    assert not _read(AutopilotSetup(SetupConfig(SetupCheck.WARN)), **{name: value}).hold_reason()
+        assert setup.hold_reason(0.0).startswith(f"held: the autopilot's {name} is {value:g}")
+    assert not _read(AutopilotSetup(SetupConfig(SetupCheck.WARN)), **{name: value}).hold_reason(0.0)
 
 
 def test_a_change_applied_at_boot_holds_until_the_autopilot_reboots():
     setup = _read(AutopilotSetup(), PLND_ORIENT=0.0)
-    assert "PLND_ORIENT is 0" in setup.hold_reason()
+    assert "PLND_ORIENT is 0" in setup.hold_reason(0.0)
     setup.on_value("PLND_ORIENT", 25.0)           # set from a ground station: ArduPilot broadcasts it
-    assert "changed from 0 to 25 since the autopilot booted" in setup.hold_reason()
+    assert "changed from 0 to 25 since the autopilot booted" in setup.hold_reason(0.0)
     assert setup.value("PLND_ORIENT") == 0.0      # what the autopilot still runs with
     setup.restarted()
-    assert setup.hold_reason().startswith("held: reading") and not setup.read_all()
+    assert setup.hold_reason(0.0).startswith("held: reading") and not setup.read_all()
     _read(setup)
-    assert setup.hold_reason() == "" and setup.value("PLND_ORIENT") == 25.0
+    assert setup.hold_reason(0.0) == "" and setup.value("PLND_ORIENT") == 25.0
     # PLND_YAW_ALIGN applies at once: a change is simply the new value.
     setup.on_value("PLND_YAW_ALIGN", 4500.0)
-    assert "PLND_YAW_ALIGN is 4500" in setup.hold_reason()
+    assert "PLND_YAW_ALIGN is 4500" in setup.hold_reason(0.0)
     setup.on_value("PLND_YAW_ALIGN", 0.0)
-    assert setup.hold_reason() == ""
+    assert setup.hold_reason(0.0) == ""
 
 
 def test_requests_are_repeated_a_few_times_then_given_up():
@@ -70,10 +70,11 @@ def test_requests_are_repeated_a_few_times_then_given_up():
     setup.on_value("PLND_ENABLED", 1.0)
     setup.on_value("NOT_OURS", 3.0)               # another parameter (a ground station's download) is ignored
     assert "PLND_ENABLED" not in setup.due(1.0) and len(setup.due(2.0)) == 4
-    assert setup.hold_reason().startswith("held: reading")    # until every name is answered or given up
+    assert setup.hold_reason(0.9).startswith("held: reading")    # until read, or read_wait_s after the first ask
+    assert setup.hold_reason(1.0) == ""
     assert setup.due(2.5) == [] and setup.given_up() == []
     assert setup.due(3.0) == [] and set(setup.given_up()) == set(PRECLAND_PARAMS) - {"PLND_ENABLED"}
-    assert setup.hold_reason() == ""              # nothing wrong read: nothing to hold on
+    assert setup.hold_reason(3.0) == ""              # nothing wrong read: nothing to hold on
     report = setup.report()
     assert report["values"] == {"PLND_ENABLED": 1.0} and len(report["unanswered"]) == 4
 

@@ -46,7 +46,7 @@ def test_landing_target_and_heartbeat_over_a_serial_port():
         import tty
         tty.setraw(master)
         # This autopilot answers no PARAM_REQUEST_READ: the setup check (tests/test_autopilot_setup.py) would hold
-        # its first targets for the 5 s it asks.
+        # its first targets for up to 1 s.
         link = MavlinkLink(LinkConfig(f"{os.ttyname(slave)},115200", setup_check=SetupCheck.OFF),
                            TelemetryBuffer()).start()
         mavutil = load_mavutil()

@@ -7,8 +7,8 @@ ArduPilot uses a LANDING_TARGET only as its PLND_* parameters say (libraries/AC_
   direction once more (for a camera looking forward or back, or yawed on the frame), so the copter would fly
   to another place than the one edge-run confirmed. edge-run's directions already hold the camera's mounting.
   Such a target is *held* (``SetupCheck.HOLD``, the default): not sent, with the reason in the log. So are
-  targets before the parameters are read (milliseconds after the autopilot is found; ``attempts`` ×
-  ``retry_s`` when it never answers).
+  targets before the parameters are read (milliseconds after the autopilot is found), for at most
+  ``read_wait_s`` (an autopilot that never answers is then asked on, and said, but not waited for).
 - ``PLND_LAG`` is only read: the run's summary compares it with the latency measured.
 
 ``PLND_TYPE``, ``PLND_ORIENT`` and ``PLND_LAG`` take effect at the autopilot's next boot (PLND_ORIENT's
@@ -81,6 +81,9 @@ class SetupConfig:
     check: SetupCheck = SetupCheck.HOLD
     retry_s: float = 1.0     # an unanswered name is asked again after this long ...
     attempts: int = 5        # ... at most this many times (ArduPilot queues 20 requests and drops the rest)
+    # Targets wait for the answers this long after the first request (ArduPilot answers in milliseconds); an
+    # autopilot or router that never answers is not made to cost more than that.
+    read_wait_s: float = 1.0
 
 
 class AutopilotSetup:
@@ -93,6 +96,7 @@ class AutopilotSetup:
         self._boot: Dict[str, float] = {}                    # the first value read since the autopilot booted
         self._now: Dict[str, float] = {}                     # the newest value read
         self._given_up: List[str] = []                       # names never answered after every attempt
+        self._first_ask_s: Optional[float] = None            # the first request since the autopilot booted
         self.boots = 0                                       # reboots seen (each one starts the reading again)
 
     # -- reading (link thread) ----------------------------------------------------------------------------
@@ -100,6 +104,8 @@ class AutopilotSetup:
         """The names to request now: never answered since boot, not asked within ``retry_s``, attempts left."""
         out = []
         with self._lock:
+            if self._first_ask_s is None:
+                self._first_ask_s = now_s
             for rule in self.rules:
                 sent, last = self._asked.get(rule.name, (0, -math.inf))
                 if rule.name in self._boot or rule.name in self._given_up or now_s - last < self.config.retry_s:
@@ -129,6 +135,7 @@ class AutopilotSetup:
         with self._lock:
             self._asked.clear()
             self._given_up.clear()
+            self._first_ask_s = None
             self._boot.clear()
             self._now.clear()
             self.boots += 1
@@ -170,13 +177,14 @@ class AutopilotSetup:
                                        f"{rule.name} {_num(now)} not {_num(rule.needed)}"))
         return out
 
-    def hold_reason(self) -> str:
-        """Why targets are held ("" when they may be sent)."""
+    def hold_reason(self, now_s: float) -> str:
+        """Why targets are held at ``now_s`` (the clock ``due`` is given; "" when they may be sent)."""
         if self.config.check is not SetupCheck.HOLD:
             return ""
         with self._lock:
             pending = [r.name for r in self.rules if r.name not in self._boot and r.name not in self._given_up]
-        if pending:   # an answer takes milliseconds; an autopilot that never answers costs attempts × retry_s once
+            waiting = self._first_ask_s is None or now_s - self._first_ask_s < self.config.read_wait_s
+        if pending and waiting:
             return f"held: reading the autopilot's precision-landing setup ({', '.join(pending)})"
         for p in self.problems():
             if p.rule.misplaces:

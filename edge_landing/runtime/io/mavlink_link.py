@@ -169,7 +169,7 @@ class MavlinkLink:
             frame = FRAME_LOCAL_NED
         else:
             xyz, frame = body, FRAME_BODY_FRD
-        held = self.setup.hold_reason() if self.setup is not None else ""
+        held = self.setup.hold_reason(now) if self.setup is not None else ""
         if held:
             self.counts.add("held_setup")
             return False, held

@@ -8,6 +8,7 @@ holds targets, once in a STATUSTEXT to the ground station.
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any, Callable, Optional, Tuple
 
 from edge_landing.runtime.io.autopilot_setup import AutopilotSetup
@@ -57,7 +58,7 @@ class SetupReader:
         if line != self._said:
             self._said = line
             (log.warning if self.setup.problems() else log.info)("%s", line)
-        held = self.setup.hold_reason()
+        held = self.setup.hold_reason(time.monotonic())
         if held and held != self._held_said:
             short = next(p.short for p in self.setup.problems() if p.rule.misplaces)
             self._status(f"{short}: edge targets held", 4)   # STATUSTEXT keeps 50 characters
