@@ -28,17 +28,24 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import Deque, Optional, Sequence
+from typing import Deque, Iterator, Optional, Sequence
 
 import cv2
 import numpy as np
 
 from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.errors import InputError
-from edge_landing.runtime.fusion.image_motion import ImagePoseConfig, match_ground
+from edge_landing.runtime.fusion.image_motion import GroundMatches, ImagePoseConfig, match_ground
 from edge_landing.runtime.fusion.keyframes import Keyframe
 from edge_landing.runtime.fusion.motion_config import POSE_TELEMETRY
-from edge_landing.runtime.fusion.turn_fit import PairDirections, angles_deg, refine_with_slope, solve_turn
+from edge_landing.runtime.fusion.turn_fit import (
+    PairDirections,
+    agreement_deg,
+    angles_deg,
+    pair_turns,
+    refine_with_slope,
+    solve_turn,
+)
 
 __all__ = ["MountCheck", "MountCheckConfig", "MountEstimate", "PairDirections", "pair_directions"]
 
@@ -192,17 +199,7 @@ def _pair_directions(ref: Keyframe, cur: Keyframe, k: np.ndarray, heading: float
     # and the one whose normal is nearest the ground's, as the poses predict it, is the ground.
     best: Optional[tuple[float, np.ndarray]] = None
     k_inv = np.linalg.inv(k)
-    left = np.ones(m.cur_px.shape[0], bool)
-    for _ in range(MAX_PLANES):
-        if int(left.sum()) < cfg.min_inliers:
-            break
-        idx = np.flatnonzero(left)
-        hom, mask = cv2.findHomography(m.cur_px[idx], m.ref_px[idx], cv2.RANSAC, cfg.ransac_px, maxIters=500,
-                                       confidence=0.995)
-        if hom is None or mask is None or int(mask.sum()) < cfg.min_inliers:
-            break
-        inl = idx[mask.reshape(-1).astype(bool)]
-        left[inl] = False
+    for inl in _planes(m, cfg):
         a = _plane_homography(m.cur_px[inl], m.ref_px[inl], k, k_inv, rot)
         if a is None:
             continue
@@ -214,6 +211,27 @@ def _pair_directions(ref: Keyframe, cur: Keyframe, k: np.ndarray, heading: float
         return None, "no ground plane among the tracked features" if best is None else \
             f"no plane within {MAX_NORMAL_DEG:g}° of the ground's (nearest {best[0]:.0f}°)"
     return PairDirections(best[1], rot, t_pred / np.linalg.norm(t_pred), n_pred, heading, r_cur), ""
+
+
+def _planes(m: GroundMatches, cfg: ImagePoseConfig) -> Iterator[np.ndarray]:
+    """Indices of the matches on each plane, up to ``MAX_PLANES``: the dominant one match_ground already found,
+    then RANSAC again on what no plane took yet."""
+    inl = np.flatnonzero(m.inliers)
+    left = np.ones(m.cur_px.shape[0], bool)
+    for k in range(MAX_PLANES):
+        if k > 0:
+            if int(left.sum()) < cfg.min_inliers:
+                return
+            idx = np.flatnonzero(left)
+            hom, mask = cv2.findHomography(m.cur_px[idx], m.ref_px[idx], cv2.RANSAC, cfg.ransac_px, maxIters=500,
+                                           confidence=0.995)
+            if hom is None or mask is None:
+                return
+            inl = idx[mask.reshape(-1).astype(bool)]
+        if inl.size < cfg.min_inliers:
+            return
+        left[inl] = False
+        yield inl
 
 
 def _plane_homography(cur_px: np.ndarray, ref_px: np.ndarray, k: np.ndarray, k_inv: np.ndarray, rot: np.ndarray
@@ -299,13 +317,13 @@ class MountCheck:
         pairs = list(self.pairs)
         if len(pairs) < cfg.min_pairs:
             return None
-        turns = np.stack([solve_turn([p]) for p in pairs])
+        turns = pair_turns(pairs)
         # The consensus: the pair whose turn the most others agree with, then every pair that agrees with it.
-        agree = np.stack([angles_deg(t, turns) <= cfg.agree_deg for t in turns])
+        agree = agreement_deg(turns) <= cfg.agree_deg
         members = agree[int(np.argmax(agree.sum(axis=1)))]
         delta = solve_turn([p for p, m in zip(pairs, members) if m])
         for _ in range(2):   # the relative rotations read with the turn found so far, and the agreeing pairs again
-            turns = np.stack([solve_turn([p], delta) for p in pairs])
+            turns = pair_turns(pairs, delta)
             members = angles_deg(delta, turns) <= cfg.agree_deg
             if int(members.sum()) < cfg.min_pairs:
                 return None

@@ -97,7 +97,6 @@ class AutopilotSetup:
         self._now: Dict[str, float] = {}                     # the newest value read
         self._given_up: List[str] = []                       # names never answered after every attempt
         self._first_ask_s: Optional[float] = None            # the first request since the autopilot booted
-        self.boots = 0                                       # reboots seen (each one starts the reading again)
 
     # -- reading (link thread) ----------------------------------------------------------------------------
     def due(self, now_s: float) -> List[str]:
@@ -138,7 +137,6 @@ class AutopilotSetup:
             self._first_ask_s = None
             self._boot.clear()
             self._now.clear()
-            self.boots += 1
 
     # -- what follows (any thread) ----------------------------------------------------------------------------
     def read_all(self) -> bool:

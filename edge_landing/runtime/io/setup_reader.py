@@ -59,7 +59,9 @@ class SetupReader:
             self._said = line
             (log.warning if self.setup.problems() else log.info)("%s", line)
         held = self.setup.hold_reason(time.monotonic())
-        if held and held != self._held_said:
-            short = next(p.short for p in self.setup.problems() if p.rule.misplaces)
-            self._status(f"{short}: edge targets held", 4)   # STATUSTEXT keeps 50 characters
+        # Said for a setting that misplaces targets (not while the parameters are still being read): a missing one
+        # must not end the link's thread.
+        shorts = [p.short for p in self.setup.problems() if p.rule.misplaces]
+        if held and held != self._held_said and shorts:
+            self._status(f"{shorts[0]}: edge targets held", 4)   # STATUSTEXT keeps 50 characters
         self._held_said = held
