@@ -33,6 +33,7 @@ from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.cpu_features import cpu_features
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import VehicleState
+from edge_landing.runtime.fusion.deferred import StageTiming
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from edge_landing.runtime.fusion.motion import CameraPose
 from edge_landing.runtime.pipeline.threads import SideThreads, limit_side_threads
@@ -47,7 +48,8 @@ def _pct(ms: list[float]) -> dict[str, float]:
 
 
 def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, style: str, seed: int,
-               fps: float = 10.0, opencv_threads: int = 1, network: str = "lying") -> dict[str, Any]:
+               fps: float = 10.0, opencv_threads: int = 1, network: str = "lying",
+               timing: StageTiming = StageTiming.INLINE, paced: bool = False) -> dict[str, Any]:
     from edge_landing import sim
     from edge_landing.benchmarks.lying_model import lying_prediction
     from edge_landing.runtime.models import default_model_path
@@ -67,12 +69,15 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
             break
         shots.append((s, render_sample(scfg, k, s, renderer).rgb))
     limit_side_threads(SideThreads(opencv=opencv_threads, blas=1))
-    fuser = LandingFuser(FusionConfig(), intr, mount)
+    fuser = LandingFuser(FusionConfig(geometry_timing=timing), intr, mount)
     model = OnnxModel.load(default_model_path(), threads)
     scale = ScaleStage(None, AltitudeScaleEstimator(), intr, mount)
-    stage_ms, fusion_ms, model_ms, ran = [], [], [], []
+    stage_ms, fusion_ms, model_ms, ran, run_ms = [], [], [], [], []
+    start = time.perf_counter()
     for k, (s, rgb) in enumerate(shots):
         state = VehicleState(s.t_s, s.attitude, s.position_ned_m.copy(), s.agl_m, "sim")
+        if paced:       # frames arrive at the camera's rate, as live: the time between is the CPU's to spare
+            time.sleep(max(0.0, start + k / fps - time.perf_counter()))
         t0 = time.perf_counter()
         own = model.predict(rgb, k, s.t_s)
         t1 = time.perf_counter()
@@ -86,6 +91,8 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
             model_ms.append(1e3 * (t1 - t0))
             stage_ms.append(1e3 * target.timings_s.get("geometry", float("nan")))
             ran.append(fuser.geometry_ran)
+            if "geometry_stage" in target.timings_s:
+                run_ms.append(1e3 * target.timings_s["geometry_stage"])
     # The stage alone, on the same frames, from a fresh keyframe ring (no fusion around it).
     alone = LandingFuser(FusionConfig(), intr, mount).motion
     alone_ms = []
@@ -103,7 +110,8 @@ def bench_size(width: int, height: int, frames: int, warmup: int, threads: int, 
     split = {key: _pct(list(fused[mask])) if mask.any() else None
              for key, mask in (("fusion_without_stage_run_ms", ~stage_ran), ("fusion_with_stage_run_ms", stage_ran))}
     return {"size": f"{width}x{height}", "window_hw": window, "frames": frames, "threads": threads, "fps": fps,
-            "network": network,
+            "network": network, "geometry_timing": str(timing), "paced": paced,
+            "stage_run_ms": _pct(run_ms) if run_ms else None,
             "opencv_threads": opencv_threads, "cpu": cpu_features().summary(),
             "stage_in_fusion_ms": stage, "stage_alone_ms": _pct(alone_ms), "fusion_ms": _pct(fusion_ms),
             "model_ms": _pct(model_ms), "stage_share_of_model_plus_fusion": stage["mean"] / total,
@@ -124,6 +132,10 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--network", choices=("lying", "shipped"), default="lying",
                    help="what fusion gets: the flat-lying model's planar depth at the camera's size (more spots to "
                         "confirm), or the shipped model's own output, metric from the altitude (as edge-run runs it)")
+    p.add_argument("--geometry-timing", default="inline", help="inline: the stage inside the frame that runs it; "
+                   "overlapped (edge-run's default): on its own thread, collected by the next frame (fusion.deferred)")
+    p.add_argument("--paced", action="store_true", help="feed frames at --fps as a live camera does (default: "
+                   "back to back, the CPU never idle)")
     p.add_argument("--json", help="write the results here")
     refuse_negative_sizes(argv)
     a = p.parse_args(argv)
@@ -141,21 +153,27 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     from edge_landing.sim.world import Style
 
     check_choice("--style", Style.from_string, a.style)
+    timing = StageTiming.from_string(a.geometry_timing)
     results = []
     sizes = [parse_size(s) for s in a.sizes]          # all checked before the first (slow) render
     json_path = output_file(a.json, "the --json file") if a.json else None
     for w, h in sizes:
-        r = bench_size(w, h, a.frames, a.warmup, a.threads, a.style, a.seed, a.fps, a.opencv_threads, a.network)
+        r = bench_size(w, h, a.frames, a.warmup, a.threads, a.style, a.seed, a.fps, a.opencv_threads, a.network,
+                       timing, a.paced)
         results.append(r)
         s, f, m = r["stage_alone_ms"], r["fusion_ms"], r["model_ms"]
         i = r["stage_in_fusion_ms"]
-        print(f"{r['size']:>8s} at {r['fps']:g} frames/s (DIS window <= {r['window_hw'][0]}x{r['window_hw'][1]}): "
+        print(f"{r['size']:>8s} at {r['fps']:g} frames/s, geometry {r['geometry_timing']}"
+              f"{', paced' if r['paced'] else ''} (DIS window <= {r['window_hw'][0]}x{r['window_hw'][1]}): "
               f"stage alone (every frame) "
               f"p50 {s['p50']:.2f} p90 {s['p90']:.2f} p99 {s['p99']:.2f} ms; in fusion (every "
               f"{FusionConfig().geometry_interval_s:g} s) mean {i['mean']:.2f} p50 {i['p50']:.2f} p90 {i['p90']:.2f} ms; "
               f"fusion with it p50 {f['p50']:.2f} ms, model p50 "
               f"{m['p50']:.2f} ms; stage = {100 * r['stage_share_of_model_plus_fusion']:.0f} % of model + fusion (means)",
               flush=True)
+        if r["stage_run_ms"] is not None and timing is StageTiming.OVERLAPPED:
+            q = r["stage_run_ms"]
+            print(f"{'':>8s} stage runs on their own thread: p50 {q['p50']:.2f} p90 {q['p90']:.2f} ms", flush=True)
         for key, what in (("fusion_without_stage_run_ms", "without"), ("fusion_with_stage_run_ms", "with")):
             q = r[key]
             if q is not None:

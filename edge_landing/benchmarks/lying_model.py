@@ -43,6 +43,7 @@ from edge_landing.cli.common import (
 from edge_landing.runtime.core.camera import Intrinsics, Mount, ned_from_camera
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Prediction, VehicleState
+from edge_landing.runtime.fusion.deferred import StageTiming
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 
 
@@ -61,6 +62,7 @@ class ReplayConfig:
     trace: str = ""                   # JSON lines, one per frame and model: why a target was (not) sent
     no_position: bool = False         # telemetry without position: geometry from the image-only pose
     pose_errors: PoseErrorConfig = PoseErrorConfig()   # an autopilot's estimation errors on what fusion sees
+    geometry_timing: StageTiming = StageTiming.OVERLAPPED   # as edge-run runs the motion stage (fusion.deferred)
 
 
 def lying_prediction(intr: Intrinsics, mount: Mount, state: VehicleState, frame_id: int) -> Prediction:
@@ -135,7 +137,7 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
     mount = Mount()
     intr = scfg.intrinsics
     renderer = sim.Renderer(world, intr, mount)
-    fusion = FusionConfig(obstacle_height_m=cfg.obstacle_height_m)
+    fusion = FusionConfig(obstacle_height_m=cfg.obstacle_height_m, geometry_timing=cfg.geometry_timing)
     truth = TruthConfig(log="", clearance_m=fusion.required_clearance_m)
     from edge_landing.runtime.pipeline.trust import Continuity
 
@@ -203,11 +205,11 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
 def _trace_row(k: int, n_app: int, n_hov: int, name: str, s: Any, target: Any, fuser: LandingFuser
                ) -> dict[str, Any]:
     """One frame of one model, for diagnosis: phase, target or reason, what the motion stage measured."""
-    res = fuser.motion.last
+    res = fuser.stage_result
     row: dict[str, Any] = {
         "frame": k, "model": name, "phase": "approach" if k < n_app else "hover" if k < n_app + n_hov else "descent",
         "agl_m": round(float(s.agl_m), 1), "valid": bool(target.valid), "reason": target.reason,
-        "evidence": target.evidence, "motion": fuser.motion.last_reason}
+        "evidence": target.evidence, "motion": fuser.stage_reason}
     if res is not None:
         det = res.detectable_m[np.isfinite(res.detectable_m)]
         row.update(baseline_m=round(res.baseline_m, 2), ref_age_s=round(res.reference_age_s, 2),
@@ -273,16 +275,20 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--error-seed", type=int, default=0, help="seed of the pose errors")
     p.add_argument("--json", help="write the result here")
     p.add_argument("--trace", default="", help="write one JSON line per frame and model (reasons, motion figures)")
+    p.add_argument("--geometry-timing", default="overlapped", help="overlapped (edge-run's default: a frame's "
+                   "motion geometry reaches the next frame) or inline")
     a = p.parse_args(argv)
     _check_args(a)
     result = replay(ReplayConfig(a.style, a.seed, a.frames, models=tuple(a.models),
                                  obstacle_height_m=a.obstacle_height, width=a.size[0], height=a.size[1],
                                  hazards=not a.no_hazards, trace=a.trace, no_position=a.no_position,
-                                 pose_errors=PoseErrors.from_string(a.pose_errors).config(a.error_seed)),
+                                 pose_errors=PoseErrors.from_string(a.pose_errors).config(a.error_seed),
+                                 geometry_timing=StageTiming.from_string(a.geometry_timing)),
                     progress=True)
     print(f"{a.style} seed {a.seed}, {a.frames} frames, camera {a.size[0]}x{a.size[1]}"
           + (", telemetry without position" if a.no_position else "")
-          + (f", {a.pose_errors} pose errors (seed {a.error_seed})" if a.pose_errors != "none" else ""))
+          + (f", {a.pose_errors} pose errors (seed {a.error_seed})" if a.pose_errors != "none" else "")
+          + f", geometry {a.geometry_timing}")
     print(_summary(result))
     if a.json:
         Path(a.json).write_text(json.dumps(result, indent=1))

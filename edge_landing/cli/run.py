@@ -42,6 +42,7 @@ from edge_landing.cli.run_model import add_model_arguments, choose_files, load_i
 from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.fusion.deferred import StageTiming
 from edge_landing.runtime.io.autopilot_setup import SetupCheck
 from edge_landing.runtime.io.flight_record import TLOG_NAME, FlightRecorder, RecordingSource, check_record_folder
 from edge_landing.runtime.io.gimbal import GimbalSeries, GimbalSource
@@ -124,6 +125,7 @@ class RunConfig:
     grid: GridMode = GridMode.NED
     obstacle_height_m: float = 0.5      # motion geometry must resolve this to confirm a spot (§11)
     allow_unconfirmed: bool = False     # send network-only spots (offline images have no motion)
+    geometry_timing: StageTiming = StageTiming.OVERLAPPED   # the motion stage beside the frame path (fusion.deferred)
 
     @property
     def mount(self) -> Mount:
@@ -211,6 +213,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "drone's own motion could have seen an obstacle this tall there and saw none")
     f.add_argument("--allow-unconfirmed", action="store_true", help="also send spots only the network vouches "
                    "for (no motion geometry, e.g. still images); marked 'network only' in the log")
+    f.add_argument("--geometry-timing", default="overlapped", help="overlapped (default): a frame's motion "
+                   "geometry is measured on its own thread while the next frame is inferred, and that frame uses "
+                   "it, so the stage does not lengthen any frame's capture-to-send latency; inline: before the "
+                   "frame's own target (one frame sooner, the stage's time added to that frame's latency)")
     return p
 
 
@@ -233,7 +239,8 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      log_path=a.log_path,
                      max_frames=a.max_frames, duration_s=a.duration, overlap=not a.sequential, fusion_hz=a.fusion_hz,
                      grid=GridMode.from_string(a.grid), obstacle_height_m=a.obstacle_height,
-                     allow_unconfirmed=a.allow_unconfirmed)
+                     allow_unconfirmed=a.allow_unconfirmed,
+                     geometry_timing=StageTiming.from_string(a.geometry_timing))
 
 
 def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> Dict[str, Any]:
@@ -281,7 +288,8 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
                        height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "",
                        delay_s=cfg.camera_delay_s, tlog=tlog_config(cfg.tlog, cfg.tlog_video_start, cfg.mav_target_system))
     fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m,
-                              obstacle_height_m=cfg.obstacle_height_m, allow_unconfirmed=cfg.allow_unconfirmed)
+                              obstacle_height_m=cfg.obstacle_height_m, allow_unconfirmed=cfg.allow_unconfirmed,
+                              geometry_timing=cfg.geometry_timing)
     telemetry = TelemetryBuffer(gimbal=GimbalSeries() if cfg.gimbal is GimbalSource.MAVLINK else None)
     # sim-follow renders the autopilot's pose: with --mav the link's telemetry is the drone's (as in flight),
     # without it the frame's own pose is.

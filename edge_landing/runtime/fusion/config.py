@@ -5,6 +5,7 @@ import math
 from dataclasses import dataclass
 
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.fusion.deferred import StageTiming
 from edge_landing.runtime.fusion.motion import MotionConfig
 from edge_landing.runtime.fusion.mount_check import MountCheckConfig
 
@@ -46,6 +47,10 @@ class FusionConfig:
     obstacle_height_m: float = 0.5                # geometry must be able to see obstacles this tall to confirm
     geometry_memory_s: float = 30.0               # how long a geometry confirmation holds (hover, descent)
     geometry_interval_s: float = 0.2              # the motion stage runs at most this often (0: every frame)
+    # Inline: a frame's own pair is measured before its spot is chosen. Overlapped (edge-run's default): on a
+    # thread while the next frame is inferred, collected by the next fused frame (fusion.deferred); with a
+    # telemetry position only (without one, the frame's place in the grid comes from the stage).
+    geometry_timing: StageTiming = StageTiming.INLINE
     allow_unconfirmed: bool = False               # send network-only spots when geometry cannot confirm
     confirm_on_horizontal: bool = True            # geometry-clear cells HVO calls horizontal may be confirmed
                                                   # without the depth flatness tests (fusion.confirm, §11)

@@ -15,16 +15,20 @@ Pure numpy/OpenCV, no I/O; memory bounded by the grid and the stage's keyframe r
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from functools import partial
 from typing import TYPE_CHECKING, Callable, Optional
 
+import cv2
 import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount
 from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, EVIDENCE_IMAGE_POSE, VehicleState
+from edge_landing.runtime.fusion.deferred import DeferredRun, Done, StageTiming
 from edge_landing.runtime.fusion.grid import GridView, clearance_from_mask
+from edge_landing.runtime.fusion.image_motion import ImagePose
 from edge_landing.runtime.fusion.landing import Choice
-from edge_landing.runtime.fusion.motion import POSE_IMAGE, POSE_TELEMETRY, CameraPose, MotionStage
+from edge_landing.runtime.fusion.motion import POSE_IMAGE, POSE_TELEMETRY, CameraPose, MotionStage, ParallaxResult
 from edge_landing.runtime.fusion.motion_grid import GeometryGrid, GeometryView
 from edge_landing.runtime.fusion.mount_check import MountCheck, MountEstimate
 
@@ -61,6 +65,21 @@ def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, fl
     return np.stack(out)
 
 
+@dataclass(frozen=True)
+class _StageOutcome:
+    """What one motion-stage update left for the main thread (read there, never from the stage itself, which
+    may be measuring the next frame on its thread)."""
+
+    result: Optional[ParallaxResult]
+    reason: str                             # the stage's last_reason
+    origin: Optional[np.ndarray]            # where the frame is in the grid's frame (None: nowhere)
+    frame: tuple[str, int]                  # pose source and odometry epoch the result is in
+    image_posed: bool                       # the frame had no telemetry position: placed by the images
+    image_pose: Optional[ImagePose]         # the image-only estimate then (None: none yet)
+    mount_checked: bool                     # the mount check took a pair and estimated again ...
+    mount_estimate: Optional[MountEstimate]  # ... this (None: not enough agreement yet)
+
+
 class GeometryConfirmation:
     """Per-stream geometry evidence: ``run`` once per fused frame, then ask about spots on that frame's grid."""
 
@@ -74,17 +93,20 @@ class GeometryConfirmation:
         self.mount_estimate: Optional[MountEstimate] = None   # the camera's orientation from the images so far
         self.view: Optional[GeometryView] = None
         self.note = ""
-        self.ran = False                                      # the last ``run`` ran the motion stage
+        self.ran = False                                      # the last ``run`` ran (or handed over) the stage
+        self.last: Optional[_StageOutcome] = None             # the newest stage outcome added to the grid
+        self.stage_s = math.nan           # how long the stage run added this frame took (NaN: none added)
+        self._runner: DeferredRun[_StageOutcome] = DeferredRun(config.geometry_timing, "geometry")
         self._last_run_s: Optional[float] = None
         self._frame: tuple[str, int] = (POSE_TELEMETRY, 0)   # pose source and odometry epoch of ``grid``
-        self._image_posed = False                             # this frame's pose came from the images
 
     def reset(self) -> None:
+        self._runner.cancel()           # before the stage's state goes: a job in flight still uses it
         self.grid.clear()
         self.motion.reset()
         self.mount_check.reset()
         self.mount_estimate = None
-        self.view, self.note, self._last_run_s, self.ran = None, "", None, False
+        self.view, self.note, self._last_run_s, self.ran, self.last = None, "", None, False, None
 
     def begin_frame(self) -> None:
         """A new fused frame: the stage has not run for it (yet)."""
@@ -96,22 +118,33 @@ class GeometryConfirmation:
         """Run the motion stage on this frame (its window centred on one of the network's candidate spots
         ``focus()``, K×3 NED, the first preferred; see focus_candidates) when due, and return the evidence
         aligned with the fusion grid ``view`` (or None). ``focus`` is called only when the stage runs: the
-        candidates cost a pass over the grid that most frames (between runs) do not need."""
-        self.view, self.ran = None, False
+        candidates cost a pass over the grid that most frames (between runs) do not need.
+
+        Overlapped (FusionConfig.geometry_timing), a stage run handed over by an earlier frame is collected
+        first, and this frame's run is handed to a thread: its evidence reaches the next fused frame."""
+        self.view, self.ran, self.stage_s = None, False, math.nan
+        collected = self._runner.pending
+        origin: Optional[np.ndarray] = self._apply(self._runner.collect()) if collected else None
         agl = math.nan if state is None or state.agl_m is None else float(state.agl_m)
         if view is None or (position is None and (image is None or not math.isfinite(agl))):
             self.note = "no vehicle position and no image pose (needs the camera image and height above ground)"
             return None
-        origin = position if position is not None else self.motion.position_ned_m
+        if position is not None or not collected:
+            origin = position if position is not None else self.motion.position_ned_m
         last = self._last_run_s
         if image is None or not math.isfinite(agl):
             self.note = "no camera image for geometry" if image is None else "no height above ground"
         elif position is not None and last is not None and 0.0 <= t_cap - last < self.config.geometry_interval_s - 1e-3:
             # (Without position it runs every frame: the frame's place in the grid comes from the stage.)
-            self.note = f"no new geometry (the stage runs every {self.config.geometry_interval_s:g} s)"
+            if not collected:
+                self.note = f"no new geometry (the stage runs every {self.config.geometry_interval_s:g} s)"
         else:
             self._last_run_s, self.ran = t_cap, True
-            origin = self._update(np.asarray(image), state, position, agl, t_cap, None if focus is None else focus())
+            self._submit(np.asarray(image), state, position, agl, t_cap, None if focus is None else focus())
+            if position is None or self._runner.timing is StageTiming.INLINE:
+                origin = self._apply(self._runner.collect())
+            elif not collected:
+                self.note = "no new geometry (this frame's pair is measured while the next frame is inferred)"
         if origin is None:
             return None
         self.grid.centre_on(float(origin[0]), float(origin[1]))
@@ -121,38 +154,56 @@ class GeometryConfirmation:
         self.view = self.grid.view(north0, east0, (int(view.shape[0]), int(view.shape[1])), t_cap)
         return self.view
 
-    def _update(self, image: np.ndarray, state: Optional[VehicleState], position: Optional[np.ndarray], agl: float,
-                t_cap: float, focus: Optional[np.ndarray]) -> Optional[np.ndarray]:
-        """One motion-stage update; returns where the frame is in the grid's frame (None: nowhere)."""
-        pos = position
-        if pos is None:
+    def _submit(self, image: np.ndarray, state: Optional[VehicleState], position: Optional[np.ndarray], agl: float,
+                t_cap: float, focus: Optional[np.ndarray]) -> None:
+        """Hand one motion-stage update to the runner (inline: it runs now)."""
+        if position is None:
             last = self.motion.position_ned_m
-            pos = np.full(3, np.nan)                    # the stage estimates it from the images
             if focus is not None and last is not None:  # the window follows the spot (a frame late is fine)
                 focus = focus + last
         mount = state.mount_of(self.mount) if state else self.mount
+        pos = position if position is not None else np.full(3, np.nan)   # the stage estimates it from the images
         pose = CameraPose.of(mount, state.attitude if state else Attitude(), pos, agl)
-        result = self.motion.update(image, pose, t_cap, focus)
-        anchored = position is not None or self.motion.anchored     # in the telemetry's frame
-        frame = (POSE_TELEMETRY, 0) if anchored else (POSE_IMAGE, self.motion.odometry_epoch)
-        self._image_posed = position is None
-        if frame != self._frame:
+        # The camera's orientation against the images (fusion.mount_check): a fixed mount only (a gimbal's is
+        # reported per frame), with telemetry positions.
+        yaw = state.attitude.yaw_rad if position is not None and state is not None and state.camera_mount is None \
+            else None
+        # The frame's own copy: the caller may draw on or reuse its buffer while the stage reads it on a thread.
+        grey = image.copy() if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        self._runner.submit(partial(self._stage, grey, pose, t_cap, focus, position is not None, yaw))
+
+    def _stage(self, grey: np.ndarray, pose: CameraPose, t_cap: float, focus: Optional[np.ndarray],
+               has_position: bool, yaw_rad: Optional[float]) -> _StageOutcome:
+        """The motion stage's update and the mount check; touches only the stage's and the check's state."""
+        motion = self.motion
+        result = motion.update(grey, pose, t_cap, focus)
+        anchored = has_position or motion.anchored                  # in the telemetry's frame
+        checked = yaw_rad is not None and self.mount_check.due(t_cap) and self.mount_check.add(motion.keyframes, yaw_rad)
+        estimate = self.mount_check.estimate() if checked else None
+        origin = pose.position_ned_m if has_position else motion.position_ned_m
+        return _StageOutcome(result, motion.last_reason, None if origin is None else np.array(origin, np.float64),
+                             (POSE_TELEMETRY, 0) if anchored else (POSE_IMAGE, motion.odometry_epoch),
+                             not has_position, None if has_position else motion.image_pose, checked, estimate)
+
+    def _apply(self, done: Optional[Done[_StageOutcome]]) -> Optional[np.ndarray]:
+        """Add a collected stage outcome to the evidence grid; returns where its frame is (None: nowhere)."""
+        if done is None:
+            return None
+        out, self.last, self.stage_s = done.value, done.value, done.run_s
+        if out.frame != self._frame:
             # Image odometry drifts (about 1 % of the distance flown on the sim flights): its evidence is kept
             # only as long as the keyframe ring (motion.history_s), instead of geometry_memory_s.
-            cfg = self.config
+            cfg, anchored = self.config, out.frame[0] == POSE_TELEMETRY
             memory = cfg.geometry_memory_s if anchored else min(cfg.geometry_memory_s, cfg.motion.history_s)
             self.grid = GeometryGrid(cfg.cell_m, cfg.grid_radius_m, memory, cfg.obstacle_height_m,
                                      cfg.motion.detect_sigmas)
-            self._frame = frame
-        self.note = "" if result is not None else f"no new geometry ({self.motion.last_reason})"
-        if result is not None:
-            self.grid.add(result)
-        # The camera's orientation against the images (fusion.mount_check): a fixed mount only (a gimbal's is
-        # reported per frame), with telemetry positions.
-        if position is not None and state is not None and state.camera_mount is None \
-                and self.mount_check.due(t_cap) and self.mount_check.add(self.motion.keyframes, state.attitude.yaw_rad):
-            self.mount_estimate = self.mount_check.estimate()
-        return position if position is not None else self.motion.position_ned_m
+            self._frame = out.frame
+        self.note = "" if out.result is not None else f"no new geometry ({out.reason})"
+        if out.result is not None:
+            self.grid.add(out.result)
+        if out.mount_checked:
+            self.mount_estimate = out.mount_estimate
+        return out.origin
 
     def confirmed_view(self, view: GridView, use_hvo: bool = True) -> GridView:
         """``view`` with only the cells that geometry confirmed clear and the network does not object to
@@ -182,11 +233,12 @@ class GeometryConfirmation:
 
     def evidence(self) -> str:
         out = EVIDENCE_GEOMETRY
-        if self._image_posed:
-            est = self.motion.image_pose
+        stage = self.last
+        if stage is not None and stage.image_posed:
+            est = stage.image_pose
             sigma = f" ±{est.sigma_m:.2f} m" if est is not None and est.ok else ""
             out = f"{out}; {EVIDENCE_IMAGE_POSE}{sigma}"
-        last = self.motion.last
+        last = None if stage is None else stage.result
         if last is not None and last.rain_share > 0:
             out = f"{out}; rain streaks filled in ({100 * last.rain_share:.0f} % of the window)"
         if last is not None and last.plane_raised_m > 0:

@@ -49,6 +49,7 @@ from edge_landing.runtime.fusion.config import FusionConfig
 from edge_landing.runtime.fusion.confirm import GeometryConfirmation, focus_candidates
 from edge_landing.runtime.fusion.grid import CellRules, GridView, TopDownGrid, splat_samples
 from edge_landing.runtime.fusion.landing import Choice, KeptSpot, choose_spot
+from edge_landing.runtime.fusion.motion import ParallaxResult
 from edge_landing.runtime.fusion.motion_grid import GeometryView
 from edge_landing.runtime.fusion.result import FusionResult
 
@@ -119,6 +120,19 @@ class LandingFuser:
     def geometry(self) -> Optional[GeometryView]:
         """Motion-geometry evidence on the last frame's grid (clear / obstacle cells), or None."""
         return self._confirm.view
+
+    @property
+    def stage_result(self) -> Optional[ParallaxResult]:
+        """The newest frame pair the motion stage added to the evidence (overlapped: the run an earlier frame
+        handed over), or None (none yet, or that run measured nothing)."""
+        last = self._confirm.last
+        return None if last is None else last.result
+
+    @property
+    def stage_reason(self) -> str:
+        """Why the newest stage run measured what it did (the stage's ``last_reason``)."""
+        last = self._confirm.last
+        return "" if last is None else last.reason
 
     @property
     def geometry_ran(self) -> bool:
@@ -242,7 +256,9 @@ class LandingFuser:
             focus_candidates, self._view, np.array([proposal.north_m, proposal.east_m, proposal.down_m]), here, cfg)
         t_geo = time.perf_counter()
         geo = self._confirm.run(self._view, image, state, position, t_cap, focus)
-        timings["geometry"] = time.perf_counter() - t_geo
+        timings["geometry"] = time.perf_counter() - t_geo      # on this frame's path
+        if math.isfinite(self._confirm.stage_s):
+            timings["geometry_stage"] = self._confirm.stage_s   # the run added this frame (its own thread's time)
         self._tracked = None if proposal is None else KeptSpot(proposal.north_m, proposal.east_m, t_cap)
         confirmed_view = None
         if geo is not None:
