@@ -140,7 +140,7 @@ class GeometryConfirmation:
                 self.note = f"no new geometry (the stage runs every {self.config.geometry_interval_s:g} s)"
         else:
             self._last_run_s, self.ran = t_cap, True
-            self._submit(np.asarray(image), state, position, agl, t_cap, None if focus is None else focus())
+            self._submit(np.asarray(image), state, position, agl, t_cap, focus)
             if position is None or self._runner.timing is StageTiming.INLINE:
                 origin = self._apply(self._runner.collect())
             elif not collected:
@@ -155,12 +155,13 @@ class GeometryConfirmation:
         return self.view
 
     def _submit(self, image: np.ndarray, state: Optional[VehicleState], position: Optional[np.ndarray], agl: float,
-                t_cap: float, focus: Optional[np.ndarray]) -> None:
-        """Hand one motion-stage update to the runner (inline: it runs now)."""
-        if position is None:
-            last = self.motion.position_ned_m
-            if focus is not None and last is not None:  # the window follows the spot (a frame late is fine)
-                focus = focus + last
+                t_cap: float, focus: Optional[Callable[[], np.ndarray]]) -> None:
+        """Hand one motion-stage update to the runner (inline: it runs now). ``focus`` is called by the job: the
+        network's grid view it reads is a snapshot (fusion.grid), so a thread may read it."""
+        if position is None and focus is not None:
+            last, spots = self.motion.position_ned_m, focus()
+            # The window follows the spot in the odometry's frame (a frame late is fine).
+            focus = (lambda: spots + last) if last is not None else (lambda: spots)
         mount = state.mount_of(self.mount) if state else self.mount
         pos = position if position is not None else np.full(3, np.nan)   # the stage estimates it from the images
         pose = CameraPose.of(mount, state.attitude if state else Attitude(), pos, agl)
@@ -172,11 +173,12 @@ class GeometryConfirmation:
         grey = image.copy() if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         self._runner.submit(partial(self._stage, grey, pose, t_cap, focus, position is not None, yaw))
 
-    def _stage(self, grey: np.ndarray, pose: CameraPose, t_cap: float, focus: Optional[np.ndarray],
+    def _stage(self, grey: np.ndarray, pose: CameraPose, t_cap: float, focus: Optional[Callable[[], np.ndarray]],
                has_position: bool, yaw_rad: Optional[float]) -> _StageOutcome:
-        """The motion stage's update and the mount check; touches only the stage's and the check's state."""
+        """The candidate spots, the motion stage's update and the mount check; touches only the stage's and the
+        check's state."""
         motion = self.motion
-        result = motion.update(grey, pose, t_cap, focus)
+        result = motion.update(grey, pose, t_cap, None if focus is None else focus())
         anchored = has_position or motion.anchored                  # in the telemetry's frame
         checked = yaw_rad is not None and self.mount_check.due(t_cap) and self.mount_check.add(motion.keyframes, yaw_rad)
         estimate = self.mount_check.estimate() if checked else None
