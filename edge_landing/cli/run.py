@@ -102,6 +102,7 @@ class RunConfig:
     mav_key: Optional[str] = None
     mav_target_system: Optional[int] = None  # take telemetry only from this system id
     hold_s: float = 20.0                     # a committed spot is re-sent from memory at most this long
+    target_hz: float = 20.0                  # LANDING_TARGET at most this often on average (0: no cap)
     telemetry_wait_s: float = 5.0            # with --mav, wait this long for telemetry before the first frame
     vehicle_radius_m: float = 1.0
     margin_m: float = 1.0
@@ -159,6 +160,9 @@ class RunConfig:
         if self.mav and not self.altitude_scale and not self.calibration:
             raise InputError("--no-altitude-scale with --mav needs --calibration: without either there is no metric "
                              "depth scale, so no target would ever be sent")
+        if self.target_hz != 0 and not 2.0 <= self.target_hz <= 1000.0:
+            raise InputError(f"--target-hz must be 0 (no cap) or 2-1000: ArduPilot needs a target at least every "
+                             f"0.5 s, got {self.target_hz}")
         if self.fusion_hz != 0 and not 10.0 <= self.fusion_hz <= 1000.0:
             raise InputError(f"--fusion-hz must be 0 (every frame) or 10-1000: targets must update at 10 Hz or "
                              f"faster, got {self.fusion_hz}")
@@ -199,6 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--mav-key", help="MAVLink 2 signing key file (32 bytes, or 64 hex characters)")
     k.add_argument("--mav-target-system", type=int, default=None, help="take telemetry only from this autopilot "
                    "system id (default: the first autopilot HEARTBEAT heard); other senders are ignored")
+    k.add_argument("--target-hz", type=float, default=20.0, help="send LANDING_TARGET at most this often on average "
+                   "(default 20; 0: every frame's target): a video file or a fast camera gives a target per frame, "
+                   "and ArduPilot only uses the newest (2-1000)")
     k.add_argument("--hold", type=float, default=20.0, help="re-send a committed landing spot from memory for at "
                    "most this many seconds without a confirming frame (it is out of view during the vertical descent)")
     o = p.add_argument_group("output")
@@ -231,6 +238,7 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      autopilot=Autopilot.from_string(a.autopilot),
                      autopilot_check=SetupCheck.from_string(a.autopilot_check), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
                      mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
+                     target_hz=a.target_hz,
                      vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
                      hfov_deg=a.hfov, intrinsics=a.intrinsics, mount_pitch_deg=a.mount_pitch, mount_roll_deg=a.mount_roll,
                      mount_yaw_deg=a.mount_yaw, record=a.record,
@@ -304,7 +312,8 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
             tlog_out = str(Path(cfg.flight_record) / TLOG_NAME) if cfg.flight_record else ""
             link = MavlinkLink(LinkConfig(cfg.mav, cfg.autopilot, cfg.mav_sysid, cfg.mav_compid, cfg.mav_key,
                                           target_system=cfg.mav_target_system, tlog_out=tlog_out,
-                                          setup_check=cfg.autopilot_check), link_telemetry).start()
+                                          setup_check=cfg.autopilot_check, max_target_hz=cfg.target_hz),
+                              link_telemetry).start()
             stack.callback(link.stop)
             if own_telemetry:  # said once the link is up, not before a bad --mav is refused
                 log.info("%s: using its own telemetry; the autopilot's is not used",

@@ -36,6 +36,7 @@ class LinkConfig:
     heard_within_s: float = 1.5    # the autopilot counts as heard while a message came within this
     max_target_age_s: float = 1.0  # an older target is dropped, never queued
     max_unsent_bytes: int = 512    # TCP: a send queue longer than this means the peer is not reading
+    max_target_hz: float = 20.0    # LANDING_TARGET at most this often on average (0: every target; io.send_rate)
     connect_timeout_s: float = 2.0
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 5.0
@@ -48,6 +49,9 @@ class LinkConfig:
                             ("target system", self.target_system)):
             if value is not None and not 1 <= value <= 255:
                 raise InputError(f"MAVLink {name} must be between 1 and 255, got {value}")
+        # Below 2 Hz ArduPilot's estimator starves (it needs a target every 0.5 s); 0 means no cap.
+        if not (self.max_target_hz == 0 or 2.0 <= self.max_target_hz <= 1000.0):
+            raise InputError(f"LANDING_TARGET rate cap must be 0 (none) or 2-1000 Hz, got {self.max_target_hz}")
 
 
 class LinkCounts:
@@ -56,7 +60,7 @@ class LinkCounts:
     KEYS = ("targets", "heartbeats", "statustext", "received", "send_errors", "reconnects",
             "skipped_px4_no_position", "dropped_old_targets", "dropped_backed_up", "dropped_not_heard",
             "other_senders", "before_autopilot", "bad_signature", "timesync_requests", "timesync_answers", "noise_bytes",
-            "gimbal_reports", "held_setup")
+            "gimbal_reports", "held_setup", "rate_capped")
 
     def __init__(self) -> None:
         self._lock = threading.Lock()

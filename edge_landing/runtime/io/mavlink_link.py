@@ -36,6 +36,7 @@ from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: 
     open_connection,
     unsent_bytes,
 )
+from edge_landing.runtime.io.send_rate import SendRate
 from edge_landing.runtime.io.setup_reader import SetupReader
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.io.telemetry_feed import (  # noqa: F401  (TELEMETRY_MESSAGES re-exported)
@@ -80,6 +81,7 @@ class MavlinkLink:
         self._last_request_s = -math.inf
         self._timesync: Optional[TimesyncClient] = None
         self._noise_seen = 0
+        self._target_rate = SendRate(config.max_target_hz)
         self._tlog: Optional[TlogWriter] = None
         # ArduPilot's precision-landing parameters (autopilot_setup.py); PX4's are not read.
         check = config.setup_check if config.autopilot is Autopilot.ARDUPILOT else SetupCheck.OFF
@@ -177,6 +179,9 @@ class MavlinkLink:
         if backlog > self.config.max_unsent_bytes:
             self.counts.add("dropped_backed_up")
             return False, f"link backed up: {backlog} bytes not yet taken by the peer"
+        if not self._target_rate.allow(now):
+            self.counts.add("rate_capped")
+            return False, f"rate cap: at most {self.config.max_target_hz:g} LANDING_TARGET/s (--target-hz)"
         m = self._mavutil.mavlink
         msg = m.MAVLink_landing_target_message(
             int(target.capture_time_s * 1e6), 0, frame, _finite(target.angle_x_rad), _finite(target.angle_y_rad),
