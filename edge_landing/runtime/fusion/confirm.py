@@ -10,7 +10,10 @@ pose (fusion.image_motion); the grid then lives in the image odometry's frame, o
 vehicle-centred grid (the same cells up to half a cell; obstacles are grown by a metre), with a memory of the
 keyframe ring only (the odometry drifts), and evidence says ``baseline from image pose``. A position missing
 for less than the ring's span is chained from the last telemetry position and stays in this grid.
-Pure numpy/OpenCV, no I/O; memory bounded by the grid and the stage's keyframe ring.
+With ``FusionConfig.geometry_timing`` overlapped, a due frame hands its stage run to a thread and the next
+fused frame adds the result (fusion.deferred): the stage's own state is touched only inside the run, and what
+the frame needs of it comes back in a ``_StageOutcome``.
+Pure numpy/OpenCV, no I/O; memory bounded by the grid, the stage's keyframe ring and one run in flight.
 """
 from __future__ import annotations
 
