@@ -72,7 +72,9 @@ class DeferredRun(Generic[T]):
         if self.timing is StageTiming.INLINE:
             work()
             return
-        self._thread = threading.Thread(target=work, name=self._name, daemon=True)
+        # Not a daemon: a run still in flight when the program ends is waited for (tens of milliseconds). A daemon
+        # thread inside OpenCV or numpy while the interpreter shuts down aborted the process (exit 134).
+        self._thread = threading.Thread(target=work, name=self._name, daemon=False)
         self._thread.start()
 
     def collect(self) -> Optional[Done[T]]:
