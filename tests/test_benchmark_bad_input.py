@@ -63,6 +63,7 @@ def tiny_scene(path: Path, frames: int = 3) -> Path:
     (["--json", "{t}/o.json", "--trace", "{t}/o.json"], "--trace"),
     (["--pose-errors", "bogus"], "--pose-errors"),
     (["--error-seed", "-3"], "--error-seed"),
+    (["--geometry-timing", "later"], "--geometry-timing"),
 ])
 def test_lying_model(capsys, files, argv, expected):
     one_line_error(capsys, lying_model.main, [a.format(t=files) for a in argv], expected)
@@ -135,6 +136,7 @@ def test_bench_fusion(capsys, argv, expected):
     (["--sizes", "-640x480"], "--sizes -640x480"), (["--sizes", "320x240", "-640x480"], "--sizes -640x480"),
     (["--threads", "0"], "--threads"), (["--fps", "nan"], "--fps"), (["--seed", "-1"], "--seed"),
     (["--frames", "150", "--warmup", "100"], "--frames + --warmup"),
+    (["--geometry-timing", "later"], "--geometry-timing"),
 ])
 def test_bench_motion(capsys, files, argv, expected):
     one_line_error(capsys, bench_motion.main, [a.format(t=files) for a in argv], expected)

@@ -78,3 +78,12 @@ def test_edge_run_on_a_fast_video_sends_at_the_cap(tmp_path):
     received = peer.of_type("LANDING_TARGET")
     assert len(received) == len(sent) and 5 <= len(sent) <= 27            # <= 2.5 s x 10 Hz (+ 2 of credit)
     assert len(capped) > 2 * len(sent), (len(capped), len(sent))          # not vacuous: the video was faster
+
+
+@pytest.mark.parametrize("argv, named", [(["--target-hz", "1"], "--target-hz"), (["--target-hz", "-3"], "--target-hz"),
+                                         (["--geometry-timing", "later"], "--geometry-timing")])
+def test_edge_run_names_a_bad_rate_or_timing(argv, named):
+    from edge_landing.cli.run import config_from_args
+
+    with pytest.raises(InputError, match=named):
+        config_from_args(argv)

@@ -28,7 +28,7 @@ class StageTiming(ChoiceEnum):
 
     @classmethod
     def _label(cls) -> str:
-        return "geometry timing"
+        return "--geometry-timing value"
 
 
 @dataclass(frozen=True)
