@@ -48,6 +48,7 @@ from edge_landing.runtime.io.flight_record import TLOG_NAME, FlightRecorder, Rec
 from edge_landing.runtime.io.gimbal import GimbalSeries, GimbalSource
 from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink, check_url, load_signing_key
+from edge_landing.runtime.io.send_rate import check_cap_hz
 from edge_landing.runtime.io.sources import SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.perception.backend import RuntimeRequest
@@ -160,9 +161,7 @@ class RunConfig:
         if self.mav and not self.altitude_scale and not self.calibration:
             raise InputError("--no-altitude-scale with --mav needs --calibration: without either there is no metric "
                              "depth scale, so no target would ever be sent")
-        if self.target_hz != 0 and not 2.0 <= self.target_hz <= 1000.0:
-            raise InputError(f"--target-hz must be 0 (no cap) or 2-1000: ArduPilot needs a target at least every "
-                             f"0.5 s, got {self.target_hz}")
+        check_cap_hz(self.target_hz, "--target-hz")
         if self.fusion_hz != 0 and not 10.0 <= self.fusion_hz <= 1000.0:
             raise InputError(f"--fusion-hz must be 0 (every frame) or 10-1000: targets must update at 10 Hz or "
                              f"faster, got {self.fusion_hz}")

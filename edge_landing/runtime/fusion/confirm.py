@@ -75,7 +75,6 @@ class _StageOutcome:
 
     result: Optional[ParallaxResult]
     reason: str                             # the stage's last_reason
-    origin: Optional[np.ndarray]            # where the frame is in the grid's frame (None: nowhere)
     frame: tuple[str, int]                  # pose source and odometry epoch the result is in
     image_posed: bool                       # the frame had no telemetry position: placed by the images
     image_pose: Optional[ImagePose]         # the image-only estimate then (None: none yet)
@@ -127,13 +126,12 @@ class GeometryConfirmation:
         first, and this frame's run is handed to a thread: its evidence reaches the next fused frame."""
         self.view, self.ran, self.stage_s = None, False, math.nan
         collected = self._runner.pending
-        origin: Optional[np.ndarray] = self._apply(self._runner.collect()) if collected else None
+        if collected:
+            self._apply(self._runner.collect())
         agl = math.nan if state is None or state.agl_m is None else float(state.agl_m)
         if view is None or (position is None and (image is None or not math.isfinite(agl))):
             self.note = "no vehicle position and no image pose (needs the camera image and height above ground)"
             return None
-        if position is not None or not collected:
-            origin = position if position is not None else self.motion.position_ned_m
         last = self._last_run_s
         if image is None or not math.isfinite(agl):
             self.note = "no camera image for geometry" if image is None else "no height above ground"
@@ -145,9 +143,11 @@ class GeometryConfirmation:
             self._last_run_s, self.ran = t_cap, True
             self._submit(np.asarray(image), state, position, agl, t_cap, focus)
             if position is None or self._runner.timing is StageTiming.INLINE:
-                origin = self._apply(self._runner.collect())
+                self._apply(self._runner.collect())
             elif not collected:
                 self.note = "no new geometry (this frame's pair is measured while the next frame is inferred)"
+        # Without a position the stage ran inline above, so its state is not in use on a thread.
+        origin = position if position is not None else self.motion.position_ned_m
         if origin is None:
             return None
         self.grid.centre_on(float(origin[0]), float(origin[1]))
@@ -185,15 +185,13 @@ class GeometryConfirmation:
         anchored = has_position or motion.anchored                  # in the telemetry's frame
         checked = yaw_rad is not None and self.mount_check.due(t_cap) and self.mount_check.add(motion.keyframes, yaw_rad)
         estimate = self.mount_check.estimate() if checked else None
-        origin = pose.position_ned_m if has_position else motion.position_ned_m
-        return _StageOutcome(result, motion.last_reason, None if origin is None else np.array(origin, np.float64),
-                             (POSE_TELEMETRY, 0) if anchored else (POSE_IMAGE, motion.odometry_epoch),
+        return _StageOutcome(result, motion.last_reason, (POSE_TELEMETRY, 0) if anchored else (POSE_IMAGE, motion.odometry_epoch),
                              not has_position, None if has_position else motion.image_pose, checked, estimate)
 
-    def _apply(self, done: Optional[Done[_StageOutcome]]) -> Optional[np.ndarray]:
-        """Add a collected stage outcome to the evidence grid; returns where its frame is (None: nowhere)."""
+    def _apply(self, done: Optional[Done[_StageOutcome]]) -> None:
+        """Add a collected stage outcome to the evidence grid."""
         if done is None:
-            return None
+            return
         out, self.last, self.stage_s = done.value, done.value, done.run_s
         if out.frame != self._frame:
             # Image odometry drifts (about 1 % of the distance flown on the sim flights): its evidence is kept
@@ -208,7 +206,6 @@ class GeometryConfirmation:
             self.grid.add(out.result)
         if out.mount_checked:
             self.mount_estimate = out.mount_estimate
-        return out.origin
 
     def confirmed_view(self, view: GridView, use_hvo: bool = True) -> GridView:
         """``view`` with only the cells that geometry confirmed clear and the network does not object to

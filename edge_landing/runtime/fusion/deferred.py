@@ -79,9 +79,7 @@ class DeferredRun(Generic[T]):
 
     def collect(self) -> Optional[Done[T]]:
         """The result of the job submitted last (waiting for it), or None when none is pending."""
-        if self._thread is not None:
-            self._thread.join()
-            self._thread = None
+        self._join()
         box, self._box = self._box, []
         if not box:
             return None
@@ -92,7 +90,10 @@ class DeferredRun(Generic[T]):
 
     def cancel(self) -> None:
         """Wait for a job in flight and drop its result (and its exception)."""
+        self._join()
+        self._box = []
+
+    def _join(self) -> None:
         if self._thread is not None:
             self._thread.join()
             self._thread = None
-        self._box = []

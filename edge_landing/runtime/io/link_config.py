@@ -9,6 +9,7 @@ from typing import Dict, Optional
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.io.autopilot_setup import SetupCheck
+from edge_landing.runtime.io.send_rate import check_cap_hz
 
 __all__ = ["Autopilot", "LinkConfig", "LinkCounts"]
 
@@ -49,9 +50,7 @@ class LinkConfig:
                             ("target system", self.target_system)):
             if value is not None and not 1 <= value <= 255:
                 raise InputError(f"MAVLink {name} must be between 1 and 255, got {value}")
-        # Below 2 Hz ArduPilot's estimator starves (it needs a target every 0.5 s); 0 means no cap.
-        if not (self.max_target_hz == 0 or 2.0 <= self.max_target_hz <= 1000.0):
-            raise InputError(f"LANDING_TARGET rate cap must be 0 (none) or 2-1000 Hz, got {self.max_target_hz}")
+        check_cap_hz(self.max_target_hz, "LANDING_TARGET rate cap")
 
 
 class LinkCounts:

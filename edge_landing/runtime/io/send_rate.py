@@ -9,6 +9,16 @@ from __future__ import annotations
 
 from typing import Optional
 
+from edge_landing.runtime.core.errors import InputError
+
+
+def check_cap_hz(hz: float, name: str) -> None:
+    """Refuse a cap ArduPilot cannot live with: 0 (no cap) or 2-1000 Hz (its estimator needs a target at least
+    every 0.5 s). ``name`` says where the value came from (a flag, a setting)."""
+    if not (hz == 0 or 2.0 <= hz <= 1000.0):
+        raise InputError(f"{name} must be 0 (no cap) or 2-1000 Hz: ArduPilot needs a target at least every 0.5 s, "
+                         f"got {hz}")
+
 
 class SendRate:
     """At most ``max_hz`` messages per second on average (0: no cap), the newest offered at each chance.

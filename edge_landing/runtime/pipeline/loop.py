@@ -203,7 +203,7 @@ class Pipeline:
         target = result.target
         if target.valid and target.position_ned_m is None and state is not None and state.position_ned_m is not None:
             target = replace(target, position_ned_m=target_ned(target, state))  # vehicle position + rotated body
-        return FusionResult(target, result.grid, result.geometry, result.mount), pred
+        return replace(result, target=target), pred
 
     def _finish(self, work: FrameWork) -> None:
         frame, match = work.frame, work.telemetry
