@@ -211,6 +211,25 @@ def test_pairs_that_agree_on_a_filled_surface_do_not_confirm_it_however_many():
     assert lenient.view(lenient.north0_m, lenient.east0_m, (lenient.size, lenient.size), 8.0).clear[cell]
 
 
+def test_a_hover_does_not_renew_what_moving_pairs_confirmed():
+    """Pairs with baseline confirm a cell (fused credit); then the vehicle hovers: its pairs detect only 10 m
+    there. They may not renew the confirmation, which ends ``memory_s`` after the last pair that could see an
+    obstacle. Before, every such frame renewed it through the credit of the pairs seconds before (a 400-frame flight
+    over suburban 6262: docs/MEASUREMENTS.md, "A confirmation renewed by pairs that could not see")."""
+    shape = (20, 20)
+    none = np.zeros(shape, bool)
+    rng = np.random.default_rng(6)
+    grid = GeometryGrid(0.5, 20.0, 5.0, 0.5)
+    cell = _cell(grid, 7.6, 7.6)
+    for k in range(6):
+        grid.add(_result(rng.normal(0.0, 0.05, shape), np.full(shape, 0.72), none, 0.2 * k, sigma=0.24))
+    assert grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 1.0).clear[cell]
+    for k in range(6, 40):
+        grid.add(_result(rng.normal(0.0, 1.0, shape), np.full(shape, 10.0), none, 0.2 * k, sigma=10.0 / 3))
+    assert grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 5.8).clear[cell]     # within memory
+    assert not grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 7.8).clear[cell]  # beyond it
+
+
 def test_ground_seen_under_an_overhang_is_not_seen_from_above():
     """A crown 3-7 m above the ground 2 m around a point: the camera sees the ground under its near edge, but
     the rays that would pass over that point end on the crown, so the point cannot confirm; open ground whose

@@ -13,8 +13,10 @@ and DIS's texture errors (it fills a smooth patch, a car's paint, the same way i
 capped: the fused detectable height is at least the best single pair's / ``max_fusion_gain`` (1.5: as much as
 about two independent pairs; at 2 a parked car's bonnet read as ground was confirmed).
 ``clear_t`` is the last time a frame measured the cell, found it not high, and the fused evidence was
-measurable to the obstacle height and not high; ``seen_w`` / ``high_w`` are weights of frames that
-measured it / found it high. A cell is *geometry-clear* while ``now - clear_t <= memory_s`` and it is not
+measurable to the obstacle height and not high. Only a frame that measured the cell within the credit's cap
+itself (``max_fusion_gain`` × the obstacle height) renews it through the fused credit: a hover's pairs cannot see
+a car, so a confirmation ends ``memory_s`` after the last pair that could. ``seen_w`` / ``high_w`` are weights
+of frames that measured it / found it high. A cell is *geometry-clear* while ``now - clear_t <= memory_s`` and it is not
 an obstacle; an *obstacle* when ``high_w >= obstacle_vote_share · seen_w`` (flow has heavy tails: one
 odd frame out of many does not make an obstacle; a real one is high in most frames that could see it),
 or when its fused height stands out (half the obstacle height and ``detect_sigmas`` fused σ). Each cell also
@@ -178,8 +180,11 @@ class GeometryGrid:
         fused_det, fused_high = self._fused_evidence(self._fused[:, win[0], win[1]], best)
         # The fused credit only where no frame within the memory found the cell high: a thin wall or pole that
         # DIS smooths to a fraction of its height stands out in few frames (too few for the vote) and must not
-        # be confirmed by averaging the frames that missed it.
-        credit = (fused_det <= self.obstacle_height_m) & (self._w[1][win] < 0.5)
+        # be confirmed by averaging the frames that missed it. And only from a frame that measured the cell
+        # about as well itself (within the credit's own cap): a frame that could not have seen a car (a hover,
+        # a descent onto the spot) must not renew what the pairs able to see one confirmed seconds before.
+        informative = det <= self.max_fusion_gain * self.obstacle_height_m
+        credit = (fused_det <= self.obstacle_height_m) & (self._w[1][win] < 0.5) & informative
         confirm = measured & ((det <= self.obstacle_height_m) | credit) & ~fused_high & ~high & ~suspect
         self._clear_t[win][confirm] = t
         self._clear_t[win][(high | suspect) & ~confirm] = -np.inf
