@@ -211,23 +211,28 @@ def test_pairs_that_agree_on_a_filled_surface_do_not_confirm_it_however_many():
     assert lenient.view(lenient.north0_m, lenient.east0_m, (lenient.size, lenient.size), 8.0).clear[cell]
 
 
-def test_a_hover_does_not_renew_what_moving_pairs_confirmed():
+def test_a_hover_does_not_renew_what_moving_pairs_confirmed_a_noisy_moving_pair_does():
     """Pairs with baseline confirm a cell (fused credit); then the vehicle hovers: its pairs detect only 10 m
     there. They may not renew the confirmation, which ends ``memory_s`` after the last pair that could see an
     obstacle. Before, every such frame renewed it through the credit of the pairs seconds before (a 400-frame flight
-    over suburban 6262: docs/MEASUREMENTS.md, "A confirmation renewed by pairs that could not see")."""
+    over suburban 6262: docs/MEASUREMENTS.md, "A confirmation renewed by pairs that could not see"). Moving pairs
+    in heavy rain, each detecting 1.2 m (it could see a car), still renew it."""
     shape = (20, 20)
     none = np.zeros(shape, bool)
     rng = np.random.default_rng(6)
-    grid = GeometryGrid(0.5, 20.0, 5.0, 0.5)
-    cell = _cell(grid, 7.6, 7.6)
+    hover, rain = GeometryGrid(0.5, 20.0, 5.0, 0.5), GeometryGrid(0.5, 20.0, 5.0, 0.5)
+    cell = _cell(hover, 7.6, 7.6)
     for k in range(6):
-        grid.add(_result(rng.normal(0.0, 0.05, shape), np.full(shape, 0.72), none, 0.2 * k, sigma=0.24))
-    assert grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 1.0).clear[cell]
+        height = rng.normal(0.0, 0.05, shape)
+        for g in (hover, rain):
+            g.add(_result(height, np.full(shape, 0.72), none, 0.2 * k, sigma=0.24))
+    assert hover.view(hover.north0_m, hover.east0_m, (hover.size, hover.size), 1.0).clear[cell]
     for k in range(6, 40):
-        grid.add(_result(rng.normal(0.0, 1.0, shape), np.full(shape, 10.0), none, 0.2 * k, sigma=10.0 / 3))
-    assert grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 5.8).clear[cell]     # within memory
-    assert not grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 7.8).clear[cell]  # beyond it
+        hover.add(_result(rng.normal(0.0, 1.0, shape), np.full(shape, 10.0), none, 0.2 * k, sigma=10.0 / 3))
+        rain.add(_result(rng.normal(0.0, 0.1, shape), np.full(shape, 1.2), none, 0.2 * k, sigma=0.4))
+    assert hover.view(hover.north0_m, hover.east0_m, (hover.size, hover.size), 5.8).clear[cell]     # within memory
+    assert not hover.view(hover.north0_m, hover.east0_m, (hover.size, hover.size), 7.8).clear[cell]  # beyond it
+    assert rain.view(rain.north0_m, rain.east0_m, (rain.size, rain.size), 7.8).clear[cell]
 
 
 def test_ground_seen_under_an_overhang_is_not_seen_from_above():
