@@ -185,8 +185,7 @@ class GeometryGrid:
         # be confirmed by averaging the frames that missed it. And only from a frame that could itself have seen
         # a car there (``renew_factor`` × the obstacle height): a hover's or a descent's pairs, detecting metres,
         # must not renew what the pairs able to see one confirmed seconds before. Not the credit's own cap
-        # (1.5×): in heavy rain every pair detects 0.7-1.5 m, and the lying model's targets on urban 8282 fell
-        # from 131 to 39 of 200 frames with it.
+        # (1.5×): in heavy rain every moving pair detects 0.7-1.5 m, and confirmation rests on renewing by them.
         informative = det <= self.renew_factor * self.obstacle_height_m
         credit = (fused_det <= self.obstacle_height_m) & (self._w[1][win] < 0.5) & informative
         confirm = measured & ((det <= self.obstacle_height_m) | credit) & ~fused_high & ~high & ~suspect
