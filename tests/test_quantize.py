@@ -131,7 +131,7 @@ def test_depth_is_compared_with_fp32_when_ground_truth_is_out_of_the_models_rang
 
 
 def test_calibration_from_two_scenes_shares_and_interleaves_frames(models, tmp_path):
-    from edge_landing.export.quantize import split_frames
+    from edge_landing.export.calib_frames import split_frames
 
     a, b = Scene(models["good"]), Scene(textured_scene(tmp_path / "other", 8, seed=9))
     calib, held = split_frames([a, b], 5, 4)

@@ -154,7 +154,7 @@ def check_args(a: argparse.Namespace) -> None:
     """Everything every variant shares, checked once before the first: a bad --calib or frame count is the
     user's error, not a failed row per variant."""
     from edge_landing.evaluation.scene import Scene
-    from edge_landing.export.quantize import split_frames
+    from edge_landing.export.calib_frames import split_frames
 
     for flag, value in (("--frames", a.frames), ("--eval-frames", a.eval_frames), ("--iterations", a.iterations)):
         if value < 1:

@@ -1,17 +1,20 @@
-"""The motion stage's keyframes and where it looks (ARCHITECTURE.md §11): a stored frame with its pose, the window
-of the ground band DIS runs on, and a keyframe resampled onto that window. Pure numpy/OpenCV, no state."""
+"""The motion stage's keyframes and where it looks (ARCHITECTURE.md §11): a stored frame with its pose, the bounded
+ring they are kept in and the one paired with the current frame, the window of the ground band DIS runs on, and a
+keyframe resampled onto that window. Pure numpy/OpenCV; the ring is the caller's deque."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Deque, Optional
 
 import cv2
 import numpy as np
 
+from edge_landing.runtime.fusion.baseline import detectable_heights_m, window_probes
 from edge_landing.runtime.fusion.motion_config import POSE_TELEMETRY, MotionConfig
 from edge_landing.runtime.fusion.parallax import CameraPose
 
-__all__ = ["Keyframe", "ground_window", "warp_window"]
+__all__ = ["Keyframe", "ground_window", "pick_reference", "prune_keyframes", "store_keyframe", "warp_window"]
 
 
 @dataclass(frozen=True)
@@ -22,6 +25,46 @@ class Keyframe:
     grey: np.ndarray
     pose: CameraPose
     source: str = POSE_TELEMETRY
+
+
+def prune_keyframes(ring: Deque[Keyframe], time_s: float, history_s: float) -> None:
+    """Drop keyframes older than ``history_s`` before ``time_s``, and any not before it (time went back)."""
+    while ring and (time_s - ring[0].time_s > history_s or ring[0].time_s >= time_s):
+        ring.popleft()
+
+
+def store_keyframe(ring: Deque[Keyframe], item: Keyframe, config: MotionConfig) -> None:
+    """Append ``item``, keeping keyframes at least ``history_s / max_frames`` apart and at most ``max_frames``:
+    the newest frame replaces the previous one when that one is too close to its predecessor (the ring always
+    holds the latest frame)."""
+    gap = config.history_s / config.max_frames
+    if len(ring) > 1 and ring[-1].time_s - ring[-2].time_s < gap:
+        ring.pop()
+    ring.append(item)
+    while len(ring) > config.max_frames:
+        ring.popleft()
+
+
+def pick_reference(ring: Deque[Keyframe], pose: CameraPose, window: tuple[slice, slice], k_cv: np.ndarray,
+                   k_inv: np.ndarray, size_hw: tuple[int, int], config: MotionConfig
+                   ) -> tuple[Optional[Keyframe], float, str]:
+    """(keyframe, the height it detects, why none) for the current frame at ``pose``: the newest keyframe that
+    detects ``enough_detect_m`` with margin, else the most sensitive one.
+
+    All stored frames are scored at once at a few probe pixels of the window: the smallest height they could
+    detect there (median over the probes the keyframe still sees). Hovering (no baseline) scores inf: no
+    keyframe, no evidence.
+    """
+    if not ring:
+        return None, math.inf, "no earlier frame yet"
+    items = list(ring)
+    det = detectable_heights_m(pose, [it.pose for it in items], window_probes(window), k_cv, k_inv, size_hw, config)
+    if not np.isfinite(det).any():
+        return None, math.inf, "no keyframe with a usable baseline overlaps the current view (hovering?)"
+    # A longer baseline than needed only adds occlusion and resampling blur.
+    enough = np.flatnonzero(det <= config.enough_detect_m)
+    pick = int(enough[-1]) if enough.size else int(np.argmin(det))
+    return items[pick], float(det[pick]), ""
 
 
 def warp_window(src: np.ndarray, hom: np.ndarray, window: tuple[slice, slice]) -> np.ndarray:

@@ -22,10 +22,16 @@ import cv2
 import numpy as np
 
 from edge_landing.runtime.core.camera import Intrinsics, Mount
-from edge_landing.runtime.fusion.baseline import detectable_heights_m, window_probes
 from edge_landing.runtime.fusion.image_checks import moved_as_posed, predicted_motion_px, texture_masks
 from edge_landing.runtime.fusion.image_motion import ImagePose, estimate_translation, plane_prediction_sigma
-from edge_landing.runtime.fusion.keyframes import Keyframe, ground_window, warp_window
+from edge_landing.runtime.fusion.keyframes import (
+    Keyframe,
+    ground_window,
+    pick_reference,
+    prune_keyframes,
+    store_keyframe,
+    warp_window,
+)
 from edge_landing.runtime.fusion.motion_config import (
     POSE_IMAGE,
     POSE_TELEMETRY,
@@ -149,9 +155,7 @@ class MotionStage:
             self.last_reason = f"height above ground {pose.agl_m} m unusable (need >= {cfg.min_agl_m} m)"
             return None
         grey = self.grey(image)
-        while self._history and (time_s - self._history[0].time_s > cfg.history_s
-                                 or self._history[0].time_s >= time_s):
-            self._history.popleft()
+        prune_keyframes(self._history, time_s, cfg.history_s)
         source = POSE_TELEMETRY if np.all(np.isfinite(pose.position_ned_m)) else POSE_IMAGE
         self.image_pose = None
         if source == POSE_IMAGE:
@@ -183,7 +187,7 @@ class MotionStage:
             result = self._measure(grey, pose, ref, time_s, window)
         self.position_ned_m = pose.position_ned_m.copy()
         # An anchored image position is in the telemetry's frame: a position dropout, not a new frame.
-        self._store(Keyframe(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source))
+        store_keyframe(self._history, Keyframe(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source), cfg)
         self.last = result
         return result
 
@@ -233,17 +237,6 @@ class MotionStage:
             return pose, est
         return replace(pose, position_ned_m=ref.pose.position_ned_m + est.delta_ned_m), est
 
-    def _store(self, item: Keyframe) -> None:
-        h = self._history
-        # Keyframes at least history_s / max_frames apart: the newest frame replaces the previous one when
-        # that one is too close to its predecessor (the ring always holds the latest frame).
-        gap = self.config.history_s / self.config.max_frames
-        if len(h) > 1 and h[-1].time_s - h[-2].time_s < gap:
-            h.pop()
-        h.append(item)
-        while len(h) > self.config.max_frames:
-            h.popleft()
-
     def _choose_window(self, pose: CameraPose, focus: Optional[np.ndarray]
                        ) -> tuple[Optional[tuple[slice, slice]], Optional[Keyframe]]:
         """The window and keyframe for this frame: among the candidate spots, the one whose best keyframe detects
@@ -274,26 +267,12 @@ class MotionStage:
         return window
 
     def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice]) -> tuple[Optional[Keyframe], float]:
-        """The newest keyframe that detects ``enough_detect_m`` with margin, else the most sensitive one.
-
-        All stored frames are scored at once at a few probe pixels of the window: the smallest height they
-        could detect there (median over the probes the keyframe still sees). Hovering (no baseline) scores
-        inf: no keyframe, no evidence.
-        """
-        if not self._history:
-            self.last_reason = "no earlier frame yet"
-            return None, math.inf
-        cfg = self.config
-        items = list(self._history)
-        det = detectable_heights_m(pose, [it.pose for it in items], window_probes(window), self.k_cv, self._k_inv,
-                                   self.size_hw, cfg)
-        if not np.isfinite(det).any():
-            self.last_reason = "no keyframe with a usable baseline overlaps the current view (hovering?)"
-            return None, math.inf
-        # A longer baseline than needed only adds occlusion and resampling blur.
-        enough = np.flatnonzero(det <= cfg.enough_detect_m)
-        pick = int(enough[-1]) if enough.size else int(np.argmin(det))
-        return items[pick], float(det[pick])
+        """keyframes.pick_reference on the ring; sets ``last_reason`` when there is none."""
+        ref, det, reason = pick_reference(self._history, pose, window, self.k_cv, self._k_inv, self.size_hw,
+                                          self.config)
+        if ref is None:
+            self.last_reason = reason
+        return ref, det
 
     def _measure(self, grey: np.ndarray, pose: CameraPose, ref: Keyframe, time_s: float,
                  window: tuple[slice, slice], image_pose: Optional[ImagePose] = None) -> Optional[ParallaxResult]:
