@@ -21,7 +21,7 @@ from edge_landing.runtime.fusion.motion import POSE_IMAGE, POSE_TELEMETRY, Camer
 sim = pytest.importorskip("edge_landing.sim", reason="the sim extra (embreex) renders the test worlds")
 from edge_landing.benchmarks.landing_truth import TruthConfig, check_target  # noqa: E402
 from edge_landing.benchmarks.lying_model import lying_prediction  # noqa: E402
-from tests.test_motion import EFFECTS, INTR, MOUNT, _flat_world, _frames  # noqa: E402
+from tests.test_motion import EFFECTS, FPS, INTR, MOUNT, _flat_world, _frames  # noqa: E402
 
 CFG = ImagePoseConfig()
 
@@ -163,3 +163,44 @@ def test_short_position_dropout_is_chained_from_the_last_telemetry_position():
             assert float(np.linalg.norm(motion.position_ned_m - state.position_ned_m)) < 0.2, (k, motion.position_ned_m)
             sources.append(None if result is None else result.pose_source)
     assert sources.count(POSE_IMAGE) >= 5, sources
+
+
+
+def _fly_without_position(world, path, short_m):
+    """MotionStage over ``path`` with attitude and a height above ground ``short_m(k)`` metres short, no position:
+    per frame (odometry epoch, horizontal error of the image position against the truth from the first frame)."""
+    motion = MotionStage(MotionConfig(), INTR, MOUNT)
+    out = []
+    for k, t, r, state in _frames(world, path):
+        pose = CameraPose.of(MOUNT, state.attitude, np.full(3, np.nan), state.agl_m - short_m(k))
+        motion.update(r.rgb, pose, t, focus_ned_m=np.array([30.0, 0.0, 0.0]))
+        assert motion.position_ned_m is not None, (k, motion.last_reason)
+        truth = state.position_ned_m - np.asarray(path[0])
+        out.append((motion.odometry_epoch, float(np.linalg.norm(motion.position_ned_m[:2] - truth[:2])),
+                    motion.last_reason))
+    return out
+
+
+def test_a_rangefinder_reading_a_tree_does_not_rescale_the_image_pose():
+    """Without a telemetry position the image pose's metric scale is the height above ground. A rangefinder over a
+    7 m tree reads short for 0.6 s: the images carry the ground's height over instead, and every frame stays within
+    0.3 m of the truth (before the carried height, the pairs at the tree's height put frames metres off)."""
+    world = _flat_world([[30.0, 10.0, 2.0, 1.0, 1.5], [45.0, -8.0, 2.2, 0.9, 1.5]])
+    path = [(-10.0 + 0.5 * k, 1.5 * math.sin(0.15 * k), -30.0) for k in range(36)]
+    flown = _fly_without_position(world, path, lambda k: 7.0 if 12 <= k < 18 else 0.0)
+    assert {epoch for epoch, _, _ in flown} == {1}, flown
+    assert max(err for _, err, _ in flown) < 0.3, [round(err, 2) for _, err, _ in flown]
+
+
+def test_a_height_that_stays_changed_starts_a_new_odometry_frame():
+    """The same flight with the height 7 m short from frame 10 on and never back: carried for
+    ``agl_refused_max_s`` (2 s), then the odometry starts over at the new height, and says why."""
+    world = _flat_world([[30.0, 10.0, 2.0, 1.0, 1.5], [45.0, -8.0, 2.2, 0.9, 1.5]])
+    path = [(-10.0 + 0.5 * k, 1.5 * math.sin(0.15 * k), -30.0) for k in range(36)]
+    flown = _fly_without_position(world, path, lambda k: 7.0 if k >= 10 else 0.0)
+    refused_frames = round(ImagePoseConfig().agl_refused_max_s * FPS)
+    epochs = [epoch for epoch, _, _ in flown]
+    first_new = epochs.index(2)
+    assert 10 + refused_frames <= first_new <= 10 + refused_frames + 1, epochs
+    assert flown[first_new][2].startswith("odometry started over: height above ground"), flown[first_new][2]
+    assert max(err for _, err, _ in flown[:first_new]) < 0.3, [round(err, 2) for _, err, _ in flown]

@@ -54,6 +54,12 @@ class ImagePoseConfig:
     # The fit's covariance assumes independent track errors; on the sim pairs the actual errors were up to
     # twice the stated σ (0.043 m against 0.02 m over 6.4 m): σ is inflated by this factor.
     sigma_inflation: float = 2.0
+    # A height above ground that differs from the one the images carry over from the previous frame by more than
+    # this (+ 3 σ of the pair's climb) read something that is not the ground: a rangefinder over a tree or a car
+    # (the carried height is used instead); refused for longer than ``agl_refused_max_s``, the ground itself
+    # changed level, and the odometry starts over.
+    agl_gate_m: float = 0.5
+    agl_refused_max_s: float = 2.0
 
     def __post_init__(self) -> None:
         if self.max_features < 8 or self.min_inliers < 8:
@@ -63,6 +69,9 @@ class ImagePoseConfig:
                      "max_residual_px", "max_range_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"image pose {name} must be > 0, got {getattr(self, name)}")
+        if not (self.agl_gate_m > 0 and self.agl_refused_max_s >= 0):
+            raise InputError(f"image pose agl_gate_m must be > 0 and agl_refused_max_s >= 0, got {self.agl_gate_m}, "
+                             f"{self.agl_refused_max_s}")
         if not self.sigma_inflation >= 1:
             raise InputError(f"image pose sigma_inflation must be >= 1, got {self.sigma_inflation}")
         if not 0 < self.min_inlier_share <= 1 or not 0 <= self.agl_sigma_rel < 0.3:
@@ -94,11 +103,28 @@ class ImagePose:
     def failed(reason: str, **figures: float) -> ImagePose:
         return ImagePose(False, reason, **figures)  # type: ignore[arg-type]
 
+    def rescaled(self, factor: float) -> ImagePose:
+        """The same estimate at another metric scale (a height above ground ``factor`` times the one used)."""
+        return replace(self, delta_ned_m=self.delta_ned_m * factor, sigma_m=self.sigma_m * factor,
+                       cov_ref_m2=self.cov_ref_m2 * factor ** 2)
+
     def describe(self) -> str:
         if not self.ok:
             return f"image pose failed: {self.reason}"
         return (f"image pose: {self.inliers}/{self.features} inliers, residual {self.residual_px:.2f} px, "
                 f"σ {self.sigma_m:.2f} m")
+
+
+def carried_height_m(reference_height_m: float, delta_ned_m: np.ndarray, used_height_m: float) -> float:
+    """The current frame's height above the ground plane that the images carry over from the reference frame's.
+
+    ``delta_ned_m`` (p_cur - p_ref) was estimated at the metric scale ``used_height_m``; its climb relative to that
+    height is scale-free: d_ref - d_cur = Δ_down, so d_cur = d_ref / (1 + Δ_down / d_used). NaN when either
+    height is unusable."""
+    if not (math.isfinite(reference_height_m) and math.isfinite(used_height_m) and used_height_m > 0):
+        return math.nan
+    ratio = 1.0 + float(delta_ned_m[2]) / used_height_m
+    return reference_height_m / ratio if ratio > 0 else math.nan
 
 
 def estimate_translation(ref_grey: np.ndarray, cur_grey: np.ndarray, k: np.ndarray, r_nc_ref: np.ndarray,
@@ -143,8 +169,9 @@ def _estimate(ref: np.ndarray, cur: np.ndarray, k: np.ndarray, r_ref: np.ndarray
     if med > cfg.max_residual_px:
         return ImagePose.failed(f"inconsistent with the attitude: median residual {med:.2f} px > "
                                 f"{cfg.max_residual_px} px", residual_px=med, **figures)
-    # The climb is not checked against the change of the height above ground: that height is measured below
-    # the vehicle and jumps by metres over cars and roofs (it broke the chain ten times on one flight).
+    # The climb is not checked here against the change of the height above ground: that height is measured
+    # below the vehicle and jumps by metres over cars and roofs (it broke the chain ten times on one flight).
+    # The motion stage carries the height through the chain instead (carried_height_m).
     delta = r_ref @ t
     cov = cov * cfg.sigma_inflation ** 2
     sigma = float(math.sqrt(max(float(np.max(np.linalg.eigvalsh(cov))), 0.0)))

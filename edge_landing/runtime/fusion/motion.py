@@ -23,7 +23,12 @@ import numpy as np
 
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.fusion.image_checks import moved_as_posed, predicted_motion_px, texture_masks
-from edge_landing.runtime.fusion.image_motion import ImagePose, estimate_translation, plane_prediction_sigma
+from edge_landing.runtime.fusion.image_motion import (
+    ImagePose,
+    carried_height_m,
+    estimate_translation,
+    plane_prediction_sigma,
+)
 from edge_landing.runtime.fusion.keyframes import (
     Keyframe,
     ground_window,
@@ -94,6 +99,7 @@ class MotionStage:
         self.anchored = False      # image positions chained from a telemetry position less than history_s ago
         self._telemetry_s = -math.inf                    # when the last frame with telemetry position came
         self._chain_delta: Optional[np.ndarray] = None
+        self._agl_refused_s: Optional[float] = None   # since when the telemetry's height has been refused (chain)
 
     @property
     def keyframes(self) -> tuple[Keyframe, ...]:
@@ -112,6 +118,7 @@ class MotionStage:
         self._rain.reset()
         self.image_pose, self.position_ned_m = None, None
         self._chain_delta, self.anchored, self._telemetry_s = None, False, -math.inf
+        self._agl_refused_s = None
 
     def _plane_pose(self, pose: CameraPose, time_s: float) -> CameraPose:
         """The pose with the plane at the ground last measured near the spot, when recent and lower.
@@ -157,7 +164,7 @@ class MotionStage:
         grey = self.grey(image)
         prune_keyframes(self._history, time_s, cfg.history_s)
         source = POSE_TELEMETRY if np.all(np.isfinite(pose.position_ned_m)) else POSE_IMAGE
-        self.image_pose = None
+        self.image_pose, self.last_reason, epoch = None, "", self.odometry_epoch
         if source == POSE_IMAGE:
             pose = self._chain(grey, pose, time_s)
         else:
@@ -165,7 +172,8 @@ class MotionStage:
             if any(s.source == POSE_IMAGE for s in self._history):
                 self._history.clear()      # odometry positions are not in the telemetry's frame
                 self._ground = None
-        raw_agl = pose.agl_m               # the image pose's metric scale: the measured height, not the plane's
+        restarted = self.last_reason if self.odometry_epoch != epoch else ""
+        raw_agl = pose.agl_m    # the metric scale: the measured height (carried, when refused), not the plane's
         pose = self._plane_pose(pose, time_s)
         result = None
         window, ref = self._choose_window(pose, focus_ned_m)
@@ -187,7 +195,10 @@ class MotionStage:
             result = self._measure(grey, pose, ref, time_s, window)
         self.position_ned_m = pose.position_ned_m.copy()
         # An anchored image position is in the telemetry's frame: a position dropout, not a new frame.
-        store_keyframe(self._history, Keyframe(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source), cfg)
+        store_keyframe(self._history, Keyframe(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source,
+                                               raw_agl), cfg)
+        if result is None and self.odometry_epoch != epoch and self.last_reason == "no earlier frame yet":
+            self.last_reason = f"odometry started over: {restarted}" if restarted else self.last_reason
         self.last = result
         return result
 
@@ -213,6 +224,14 @@ class MotionStage:
         if prev is not None:
             located, est = self._image_pose(grey, pose, prev, self._chain_delta)
             if est.ok:
+                height = self._carry_height(pose.agl_m, prev, est, time_s)
+                if height is None:
+                    return self._new_odometry(pose)
+                if height != pose.agl_m:     # the pair at the carried height's scale
+                    est = est.rescaled(height / pose.agl_m)
+                    self.image_pose = est
+                    located = replace(pose, position_ned_m=prev.pose.position_ned_m + est.delta_ned_m)
+                located = replace(located, agl_m=height)
                 self._chain_delta = est.delta_ned_m
                 was = self.anchored or prev.source == POSE_TELEMETRY
                 self.anchored = was and time_s - self._telemetry_s <= self.config.history_s
@@ -220,10 +239,35 @@ class MotionStage:
                     self.odometry_epoch += 1
                 return located
             self.last_reason = est.describe()
+        return self._new_odometry(pose)
+
+    def _new_odometry(self, pose: CameraPose) -> CameraPose:
+        """Start a new odometry frame at the origin with this frame (``odometry_epoch`` + 1)."""
         self._history.clear()
-        self._chain_delta, self.anchored, self._ground = None, False, None
+        self._chain_delta, self.anchored, self._ground, self._agl_refused_s = None, False, None, None
         self.odometry_epoch += 1
         return replace(pose, position_ned_m=np.zeros(3))
+
+    def _carry_height(self, agl_m: float, prev: Keyframe, est: ImagePose, time_s: float) -> Optional[float]:
+        """The height above ground that sets this frame's metric scale, or None when the chain must start over.
+
+        The images carry the previous frame's height over (image_motion.carried_height_m). A telemetry height
+        within ``agl_gate_m`` + 3 σ of it is used (it follows the terrain); one farther off read something other
+        than the ground (a rangefinder over a tree or a car: 7.6 m short on a rural flight, which scaled a 23 m
+        pair by 11 % and put the vehicle 2.5 m off), and the carried height is used while it lasts up to
+        ``agl_refused_max_s``; past that the ground's level itself changed and the odometry starts over."""
+        cfg = self.config.image_pose
+        carried = carried_height_m(prev.scale_agl_m, est.delta_ned_m, agl_m)
+        if not math.isfinite(carried) or abs(agl_m - carried) <= cfg.agl_gate_m + 3.0 * est.sigma_m:
+            self._agl_refused_s = None
+            return agl_m
+        if self._agl_refused_s is None:
+            self._agl_refused_s = time_s
+        if time_s - self._agl_refused_s > cfg.agl_refused_max_s:
+            self.last_reason = (f"height above ground {agl_m:.1f} m against {carried:.1f} m carried by the images for "
+                                f"more than {cfg.agl_refused_max_s:.1f} s")
+            return None
+        return carried
 
     def _image_pose(self, grey: np.ndarray, pose: CameraPose, ref: Keyframe,
                     prior: Optional[np.ndarray] = None) -> tuple[CameraPose, ImagePose]:
