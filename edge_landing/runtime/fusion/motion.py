@@ -23,12 +23,7 @@ import numpy as np
 
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.fusion.image_checks import moved_as_posed, predicted_motion_px, texture_masks
-from edge_landing.runtime.fusion.image_motion import (
-    ImagePose,
-    carried_height_m,
-    estimate_translation,
-    plane_prediction_sigma,
-)
+from edge_landing.runtime.fusion.image_motion import ImagePose, plane_prediction_sigma
 from edge_landing.runtime.fusion.keyframes import (
     Keyframe,
     ground_window,
@@ -44,6 +39,7 @@ from edge_landing.runtime.fusion.motion_config import (
     MotionConfig,
     ParallaxResult,
 )
+from edge_landing.runtime.fusion.odometry import ImageOdometry
 from edge_landing.runtime.fusion.parallax import (
     CameraPose,
     column_seen,
@@ -93,18 +89,28 @@ class MotionStage:
         self._ground: Optional[tuple[float, float]] = None   # (time, NED down of the local ground last measured)
         self._scan = 0                                         # next window position without a candidate spot
         self._rain = RainFilter(config.streaks)               # rain streaks out of each pair (fusion.streaks)
-        self.image_pose: Optional[ImagePose] = None     # the last image-only estimate (None: telemetry pose)
         self.position_ned_m: Optional[np.ndarray] = None  # where the last frame was placed (odometry or NED)
-        self.odometry_epoch = 0                          # + 1 each time image odometry restarts its frame
-        self.anchored = False      # image positions chained from a telemetry position less than history_s ago
-        self._telemetry_s = -math.inf                    # when the last frame with telemetry position came
-        self._chain_delta: Optional[np.ndarray] = None
-        self._agl_refused_s: Optional[float] = None   # since when the telemetry's height has been refused (chain)
+        self._odometry = ImageOdometry(config, self.k_cv)  # places frames without a telemetry position
 
     @property
     def keyframes(self) -> tuple[Keyframe, ...]:
         """The keyframe ring, oldest first (the newest is the last frame ``update`` stored)."""
         return tuple(self._history)
+
+    @property
+    def image_pose(self) -> Optional[ImagePose]:
+        """This frame's image-only estimate (None: it had a telemetry position)."""
+        return self._odometry.estimate
+
+    @property
+    def odometry_epoch(self) -> int:
+        """+ 1 each time image odometry starts a new frame of its own."""
+        return self._odometry.epoch
+
+    @property
+    def anchored(self) -> bool:
+        """Image positions chained from a telemetry position less than ``history_s`` ago (the telemetry's frame)."""
+        return self._odometry.anchored
 
     @property
     def ground_down_m(self) -> Optional[float]:
@@ -116,9 +122,8 @@ class MotionStage:
         self.last, self.last_reason = None, ""
         self._ground = None
         self._rain.reset()
-        self.image_pose, self.position_ned_m = None, None
-        self._chain_delta, self.anchored, self._telemetry_s = None, False, -math.inf
-        self._agl_refused_s = None
+        self.position_ned_m = None
+        self._odometry.reset()
 
     def _plane_pose(self, pose: CameraPose, time_s: float) -> CameraPose:
         """The pose with the plane at the ground last measured near the spot, when recent and lower.
@@ -164,15 +169,17 @@ class MotionStage:
         grey = self.grey(image)
         prune_keyframes(self._history, time_s, cfg.history_s)
         source = POSE_TELEMETRY if np.all(np.isfinite(pose.position_ned_m)) else POSE_IMAGE
-        self.image_pose, self.last_reason, epoch = None, "", self.odometry_epoch
+        self._odometry.estimate, self.last_reason, restarted = None, "", None
         if source == POSE_IMAGE:
-            pose = self._chain(grey, pose, time_s)
+            pose, restarted = self._odometry.chain(grey, pose, time_s, self._history[-1] if self._history else None)
+            if restarted is not None:      # a new odometry frame: the keyframes and the ground are in the old one
+                self._history.clear()
+                self._ground = None
         else:
-            self._telemetry_s, self.anchored = time_s, False
+            self._odometry.telemetry_seen(time_s)
             if any(s.source == POSE_IMAGE for s in self._history):
                 self._history.clear()      # odometry positions are not in the telemetry's frame
                 self._ground = None
-        restarted = self.last_reason if self.odometry_epoch != epoch else ""
         raw_agl = pose.agl_m    # the metric scale: the measured height (carried, when refused), not the plane's
         pose = self._plane_pose(pose, time_s)
         result = None
@@ -180,7 +187,7 @@ class MotionStage:
         if window is None:
             self.last_reason = f"no ground within {cfg.max_range_m:.0f} m in view"
         elif ref is not None and source == POSE_IMAGE:
-            located, est = self._image_pose(grey, replace(pose, agl_m=raw_agl), ref)   # the pair, directly
+            located, est = self._odometry.locate(grey, replace(pose, agl_m=raw_agl), ref)   # the pair, directly
             pose = replace(pose, position_ned_m=located.position_ned_m)
             if est.ok:
                 result = self._measure(grey, pose, ref, time_s, window, est)
@@ -197,8 +204,8 @@ class MotionStage:
         # An anchored image position is in the telemetry's frame: a position dropout, not a new frame.
         store_keyframe(self._history, Keyframe(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source,
                                                raw_agl), cfg)
-        if result is None and self.odometry_epoch != epoch and self.last_reason == "no earlier frame yet":
-            self.last_reason = f"odometry started over: {restarted}" if restarted else self.last_reason
+        if result is None and restarted and self.last_reason == "no earlier frame yet":
+            self.last_reason = f"odometry started over: {restarted}"
         self.last = result
         return result
 
@@ -211,75 +218,6 @@ class MotionStage:
         hom = plane_homography(self.k_cv, pose, newest.pose)[0]
         return moved_as_posed(np.ascontiguousarray(grey[rs, cs]), newest.grey[rs, cs], warp_window(newest.grey, hom, window),
                               predicted_motion_px(hom, rs, cs), self.config.checks)
-
-    def _chain(self, grey: np.ndarray, pose: CameraPose, time_s: float) -> CameraPose:
-        """Place a frame without telemetry position by its image translation from the newest keyframe.
-
-        Chained from a telemetry position less than ``history_s`` ago, the frame stays in the telemetry's frame
-        (``anchored``: a short dropout, or a flickering position, keeps its evidence). Past that the odometry's
-        drift counts: a new odometry frame starts (``odometry_epoch`` + 1) where the chain is. The first frame,
-        or the first after the chain broke (blank view, too few features), starts one at the origin.
-        """
-        prev = self._history[-1] if self._history else None
-        if prev is not None:
-            located, est = self._image_pose(grey, pose, prev, self._chain_delta)
-            if est.ok:
-                height = self._carry_height(pose.agl_m, prev, est, time_s)
-                if height is None:
-                    return self._new_odometry(pose)
-                if height != pose.agl_m:     # the pair at the carried height's scale
-                    est = est.rescaled(height / pose.agl_m)
-                    self.image_pose = est
-                    located = replace(pose, position_ned_m=prev.pose.position_ned_m + est.delta_ned_m)
-                located = replace(located, agl_m=height)
-                self._chain_delta = est.delta_ned_m
-                was = self.anchored or prev.source == POSE_TELEMETRY
-                self.anchored = was and time_s - self._telemetry_s <= self.config.history_s
-                if was and not self.anchored:
-                    self.odometry_epoch += 1
-                return located
-            self.last_reason = est.describe()
-        return self._new_odometry(pose)
-
-    def _new_odometry(self, pose: CameraPose) -> CameraPose:
-        """Start a new odometry frame at the origin with this frame (``odometry_epoch`` + 1)."""
-        self._history.clear()
-        self._chain_delta, self.anchored, self._ground, self._agl_refused_s = None, False, None, None
-        self.odometry_epoch += 1
-        return replace(pose, position_ned_m=np.zeros(3))
-
-    def _carry_height(self, agl_m: float, prev: Keyframe, est: ImagePose, time_s: float) -> Optional[float]:
-        """The height above ground that sets this frame's metric scale, or None when the chain must start over.
-
-        The images carry the previous frame's height over (image_motion.carried_height_m). A telemetry height
-        within ``agl_gate_m`` + 3 σ of it is used (it follows the terrain); one farther off read something other
-        than the ground (a rangefinder over a tree or a car: 7.6 m short on a rural flight, which scaled a 23 m
-        pair by 11 % and put the vehicle 2.5 m off), and the carried height is used while it lasts up to
-        ``agl_refused_max_s``; past that the ground's level itself changed and the odometry starts over."""
-        cfg = self.config.image_pose
-        carried = carried_height_m(prev.scale_agl_m, est.delta_ned_m, agl_m)
-        if not math.isfinite(carried) or abs(agl_m - carried) <= cfg.agl_gate_m + 3.0 * est.sigma_m:
-            self._agl_refused_s = None
-            return agl_m
-        if self._agl_refused_s is None:
-            self._agl_refused_s = time_s
-        if time_s - self._agl_refused_s > cfg.agl_refused_max_s:
-            self.last_reason = (f"height above ground {agl_m:.1f} m against {carried:.1f} m carried by the images for "
-                                f"more than {cfg.agl_refused_max_s:.1f} s")
-            return None
-        return carried
-
-    def _image_pose(self, grey: np.ndarray, pose: CameraPose, ref: Keyframe,
-                    prior: Optional[np.ndarray] = None) -> tuple[CameraPose, ImagePose]:
-        """``pose`` placed at the keyframe's position + the images' translation (unchanged when it fails)."""
-        if prior is None and np.all(np.isfinite(pose.position_ned_m)):
-            prior = pose.position_ned_m - ref.pose.position_ned_m
-        est = estimate_translation(ref.grey, grey, self.k_cv, ref.pose.r_nc, pose.r_nc, pose.agl_m,
-                                   self.config.image_pose, prior)
-        self.image_pose = est
-        if not est.ok:
-            return pose, est
-        return replace(pose, position_ned_m=ref.pose.position_ned_m + est.delta_ned_m), est
 
     def _choose_window(self, pose: CameraPose, focus: Optional[np.ndarray]
                        ) -> tuple[Optional[tuple[slice, slice]], Optional[Keyframe]]:
