@@ -165,7 +165,6 @@ def test_short_position_dropout_is_chained_from_the_last_telemetry_position():
     assert sources.count(POSE_IMAGE) >= 5, sources
 
 
-
 def _fly_without_position(world, path, short_m):
     """MotionStage over ``path`` with attitude and a height above ground ``short_m(k)`` metres short, no position:
     per frame (odometry epoch, horizontal error of the image position against the truth from the first frame)."""

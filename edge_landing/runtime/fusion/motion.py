@@ -204,7 +204,7 @@ class MotionStage:
         # An anchored image position is in the telemetry's frame: a position dropout, not a new frame.
         store_keyframe(self._history, Keyframe(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source,
                                                raw_agl), cfg)
-        if result is None and restarted and self.last_reason == "no earlier frame yet":
+        if restarted and window is not None:     # (the ring is empty: "no earlier frame yet" says less)
             self.last_reason = f"odometry started over: {restarted}"
         self.last = result
         return result

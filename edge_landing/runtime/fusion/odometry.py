@@ -57,7 +57,7 @@ class ImageOdometry:
         """
         if prev is None:
             return self._start_over(pose), ""
-        located, est = self.locate(grey, pose, prev, self._delta)
+        _, est = self.locate(grey, pose, prev, self._delta)
         if not est.ok:
             return self._start_over(pose), est.describe()
         height, why = self._carry_height(pose.agl_m, prev, est, time_s)
@@ -65,13 +65,12 @@ class ImageOdometry:
             return self._start_over(pose), why
         if height != pose.agl_m:         # the pair at the carried height's scale
             est = self.estimate = est.rescaled(height / pose.agl_m)
-            located = replace(pose, position_ned_m=prev.pose.position_ned_m + est.delta_ned_m)
         self._delta = est.delta_ned_m
         was = self.anchored or prev.source == POSE_TELEMETRY
         self.anchored = was and time_s - self._telemetry_s <= self.config.history_s
         if was and not self.anchored:
             self.epoch += 1
-        return replace(located, agl_m=height), None
+        return replace(pose, position_ned_m=prev.pose.position_ned_m + est.delta_ned_m, agl_m=height), None
 
     def locate(self, grey: np.ndarray, pose: CameraPose, ref: Keyframe, prior: Optional[np.ndarray] = None
                ) -> tuple[CameraPose, ImagePose]:
