@@ -113,6 +113,13 @@ def wait_for(predicate, timeout_s: float = 10.0) -> bool:
     return predicate()
 
 
+def wait_until_sendable(link, timeout_s: float = 5.0) -> bool:
+    """The link is up and its setup read is done: the read runs beside the link coming up and, on a loaded
+    machine, can finish after a test's first target, which is then held (rightly) instead of sent."""
+    return wait_for(lambda: link.up and (link.setup is None or not link.setup.hold_reason(time.monotonic())),
+                    timeout_s)
+
+
 def last(items: list) -> Optional[object]:
     return items[-1] if items else None
 

@@ -30,6 +30,7 @@ from tests.run_helpers import (
     ground_plane_depth,
     read_decisions,
     wait_for,
+    wait_until_sendable,
 )
 
 AGL_M = 10.0
@@ -90,7 +91,7 @@ def test_old_target_is_dropped_not_queued_and_up_means_heard():
     with FakeAutopilot(port, lambda f, t: f.healthy()) as fake:
         link = MavlinkLink(LinkConfig(f"udpout:127.0.0.1:{port}"), TelemetryBuffer()).start()
         try:
-            assert wait_for(lambda: link.up, 5.0)
+            assert wait_until_sendable(link)
             body = np.array([5.0, 0.0, 10.0])
             old = Target(0, time.monotonic() - 1.5, True, position_body_frd_m=body, clearance_m=3.0)
             sent, why = link.send_target(old, None)

@@ -15,7 +15,14 @@ from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
 from edge_landing.runtime.io.send_rate import SendRate
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from tests.fake_autopilot import FakeAutopilot
-from tests.run_helpers import LoopbackAutopilot, flat_assets, free_udp_port, read_decisions, wait_for
+from tests.run_helpers import (
+    LoopbackAutopilot,
+    flat_assets,
+    free_udp_port,
+    read_decisions,
+    wait_for,
+    wait_until_sendable,
+)
 
 AGL_M = 10.0
 
@@ -45,7 +52,7 @@ def test_targets_offered_back_to_back_leave_at_the_cap_and_say_why_not():
     with FakeAutopilot(port, lambda f, t: f.healthy()) as fake:
         link = MavlinkLink(LinkConfig(f"udpout:127.0.0.1:{port}", max_target_hz=20.0), TelemetryBuffer()).start()
         try:
-            assert wait_for(lambda: link.up, 5.0)
+            assert wait_until_sendable(link)
             body = np.array([5.0, 0.0, 10.0])
             start, results = time.monotonic(), []
             while time.monotonic() - start < 1.0:
@@ -54,7 +61,8 @@ def test_targets_offered_back_to_back_leave_at_the_cap_and_say_why_not():
                 time.sleep(0.002)
             sent = sum(ok for ok, _ in results)
             assert 19 <= sent <= 23 and len(results) > 100, (sent, len(results))
-            assert all(why.startswith("rate cap: at most 20") for ok, why in results if not ok)
+            refused = {why for ok, why in results if not ok}
+            assert all(why.startswith("rate cap: at most 20") for why in refused), refused
             assert link.counts["rate_capped"] == len(results) - sent
             assert wait_for(lambda: len(fake.of_type("LANDING_TARGET")) == sent, 3.0)
         finally:
