@@ -17,6 +17,7 @@ from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, EVIDENCE_IMAGE
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
 from edge_landing.runtime.fusion.image_motion import ImagePoseConfig, estimate_translation
 from edge_landing.runtime.fusion.motion import POSE_IMAGE, POSE_TELEMETRY, CameraPose, MotionConfig, MotionStage
+from edge_landing.runtime.pipeline.trust import HELD, Continuity
 
 sim = pytest.importorskip("edge_landing.sim", reason="the sim extra (embreex) renders the test worlds")
 from edge_landing.benchmarks.landing_truth import TruthConfig, check_target  # noqa: E402
@@ -124,25 +125,46 @@ def test_hover_without_position_gives_no_baseline_and_no_confirmation():
 def test_flight_without_position_confirms_only_safe_spots():
     """The low pass of tests/test_motion.py (lying model, field of parked cars and a block) with telemetry that
     has attitude and height but no position: geometry from the image pose still confirms spots, every one on
-    ground-truth safe ground (ray casting), and the evidence says the baseline came from the images."""
+    ground-truth safe ground (ray casting), and the evidence says the baseline came from the images. Continuity
+    (ARCHITECTURE.md §12) commits a spot in the odometry's frame; what it sends, held targets included, points
+    at safe ground and carries no local NED (the odometry's frame is not the autopilot's)."""
     cars = [[n, e, 2.2, 0.9, 1.5] for n in np.arange(15.0, 45.0, 5.0) for e in (-12.0, -6.0, 0.0, 6.0)]
     world = _flat_world(cars + [[30.0, 18.0, 6.0, 5.0, 6.0]])
     path = [(-14.0 + 0.3 * k, -3.0 + 2.0 * math.sin(0.2 * k), -25.0) for k in range(60)]
     truth = TruthConfig(log="", clearance_m=FusionConfig().required_clearance_m)
     fuser = LandingFuser(FusionConfig(), INTR, MOUNT)
-    confirmed = 0
+    continuity = Continuity()
+    confirmed, sent, held = 0, 0, 0
     for k, t, r, state in _frames(world, path):
         pred = lying_prediction(INTR, MOUNT, state, k)
-        target = fuser.update(pred, replace(state, position_ned_m=None), t, r.rgb)
+        seen = replace(state, position_ned_m=None)
+        result = fuser.fuse(pred, seen, t, r.rgb)
+        target = result.target
+        if k > 0:
+            assert result.placement is not None and result.placement.odometry_epoch == 1, (k, result.placement)
         if target.valid:
             confirmed += 1
             assert target.evidence.startswith(f"{EVIDENCE_GEOMETRY}; {EVIDENCE_IMAGE_POSE}"), target.evidence
             assert target.position_ned_m is None and target.geometry_baseline_m > 0
             assert target.geometry_detectable_m <= FusionConfig().obstacle_height_m
-            ned = state.position_ned_m + state.attitude.ned_from_body() @ target.position_body_frd_m
-            ok, why = check_target(world, float(ned[0]), float(ned[1]), truth)
-            assert ok, (k, why)
+            _assert_safe(world, state, target, truth, k)
+        out, said = continuity.step(target, seen, result.grid, True, result.placement)
+        assert said == "", (k, said)
+        if out.valid:
+            sent += 1
+            held += out.reason.startswith(HELD)
+            assert out.position_ned_m is None
+            _assert_safe(world, state, out, truth, k)
     assert confirmed >= 10, confirmed
+    assert continuity.spot is not None and not continuity.in_telemetry_frame()
+    assert sent >= confirmed and held > 0, (sent, confirmed, held)
+
+
+def _assert_safe(world, state, target, truth, k):
+    """The target is judged where it points from the true pose (the autopilot flies the body vector)."""
+    ned = state.position_ned_m + state.attitude.ned_from_body() @ target.position_body_frd_m
+    ok, why = check_target(world, float(ned[0]), float(ned[1]), truth)
+    assert ok, (k, target.reason, why)
 
 
 def test_short_position_dropout_is_chained_from_the_last_telemetry_position():
@@ -203,3 +225,22 @@ def test_a_height_that_stays_changed_starts_a_new_odometry_frame():
     assert 10 + refused_frames <= first_new <= 10 + refused_frames + 1, epochs
     assert flown[first_new][2].startswith("odometry started over: height above ground"), flown[first_new][2]
     assert max(err for _, err, _ in flown[:first_new]) < 0.3, [round(err, 2) for _, err, _ in flown]
+
+
+def test_a_step_no_multirotor_flies_starts_the_odometry_over():
+    """A flat roof taken for the ground scales the chained translation by the ratio of the heights (urban 1041
+    without a position: 2.07 -> 5.45 m per frame, and the frames drifted 10 m in 0.3 s before the chain broke on
+    its own). Such a step is refused and the odometry starts over; noise and the sim flights' phase changes (a
+    one-frame velocity step of 4 m/s) are not."""
+    from edge_landing.runtime.fusion.image_motion import ImagePose
+    from edge_landing.runtime.fusion.odometry import ImageOdometry
+
+    def chain_of(*steps):
+        odo = ImageOdometry(MotionConfig(), np.eye(3))
+        return [odo._implausible_step(ImagePose(True, delta_ned_m=np.array([n, 0.0, 0.4]), sigma_m=s), 0.1)
+                for n, s in steps]
+
+    assert chain_of((2.07, 0.06), (2.09, 0.06), (2.05, 0.02), (2.11, 0.07)) == [""] * 4
+    assert chain_of((0.05, 0.02), (0.37, 0.02), (0.09, 0.02)) == [""] * 3          # the sim's phase change
+    refused = chain_of((2.07, 0.06), (5.45, 0.06))[1]
+    assert "changes the velocity by 33.8 m/s in 0.10 s, more than 50 m/s²" in refused, refused

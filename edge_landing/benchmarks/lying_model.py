@@ -163,7 +163,7 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
             # the lying network's claim is exact flat ground; the shipped one's metric scale uses telemetry
             pred = lying_prediction(intr, mount, state, k) if run["model"] is None else run["model"](r.rgb, noisy, k)
             fused = run["geometry"].fuse(pred, seen, s.t_s, r.rgb)
-            sent, _ = run["continuity"].step(fused.target, seen, fused.grid, True)
+            sent, _ = run["continuity"].step(fused.target, seen, fused.grid, True, fused.placement)
             outcomes = {"geometry": fused.target, "sent": sent,
                         "network": run["network"].update(pred, seen, s.t_s, None)}
             for kind, target in outcomes.items():

@@ -34,6 +34,7 @@ from edge_landing.runtime.fusion.landing import Choice
 from edge_landing.runtime.fusion.motion import POSE_IMAGE, POSE_TELEMETRY, CameraPose, MotionStage, ParallaxResult
 from edge_landing.runtime.fusion.motion_grid import GeometryGrid, GeometryView
 from edge_landing.runtime.fusion.mount_check import MountCheck, MountEstimate
+from edge_landing.runtime.fusion.result import ImagePlacement
 
 if TYPE_CHECKING:
     from edge_landing.runtime.fusion.config import FusionConfig
@@ -80,6 +81,15 @@ class _StageOutcome:
     image_pose: Optional[ImagePose]         # the image-only estimate then (None: none yet)
     mount_checked: bool                     # the mount check took a pair and estimated again ...
     mount_estimate: Optional[MountEstimate]  # ... this (None: not enough agreement yet)
+    position_ned_m: Optional[np.ndarray]    # where the frame was placed (None: the stage could not use it)
+
+
+def _placement(out: _StageOutcome) -> Optional[ImagePlacement]:
+    """Where a stage run placed its frame without a telemetry position, in the frame of its evidence."""
+    p = out.position_ned_m
+    if p is None or not np.all(np.isfinite(p)):
+        return None
+    return ImagePlacement(p.copy(), out.frame[1] if out.frame[0] == POSE_IMAGE else None)
 
 
 class GeometryConfirmation:
@@ -97,6 +107,7 @@ class GeometryConfirmation:
         self.note = ""
         self.ran = False                                      # the last ``run`` ran (or handed over) the stage
         self.last: Optional[_StageOutcome] = None             # the newest stage outcome added to the grid
+        self.placement: Optional[ImagePlacement] = None       # where the last ``run`` placed a frame without position
         self.stage_s = math.nan           # how long the stage run added this frame took (NaN: none added)
         self._runner: DeferredRun[_StageOutcome] = DeferredRun(config.geometry_timing, "geometry")
         self._last_run_s: Optional[float] = None
@@ -109,6 +120,7 @@ class GeometryConfirmation:
         self.mount_check.reset()
         self.mount_estimate = None
         self.view, self.note, self._last_run_s, self.ran, self.last = None, "", None, False, None
+        self.placement = None
 
     def begin_frame(self) -> None:
         """A new fused frame: the stage has not run for it (yet)."""
@@ -124,7 +136,7 @@ class GeometryConfirmation:
 
         Overlapped (FusionConfig.geometry_timing), a stage run handed over by an earlier frame is collected
         first, and this frame's run is handed to a thread: its evidence reaches the next fused frame."""
-        self.view, self.ran, self.stage_s = None, False, math.nan
+        self.view, self.ran, self.stage_s, self.placement = None, False, math.nan, None
         collected = self._runner.pending
         if collected:
             self._apply(self._runner.collect())
@@ -143,7 +155,10 @@ class GeometryConfirmation:
             self._last_run_s, self.ran = t_cap, True
             self._submit(np.asarray(image), state, position, agl, t_cap, focus)
             if position is None or self._runner.timing is StageTiming.INLINE:
-                self._apply(self._runner.collect())
+                done = self._runner.collect()
+                self._apply(done)
+                if position is None and done is not None:
+                    self.placement = _placement(done.value)
             elif not collected:
                 self.note = "no new geometry (this frame's pair is measured while the next frame is inferred)"
         # Without a position the stage ran inline above, so its state is not in use on a thread.
@@ -185,8 +200,9 @@ class GeometryConfirmation:
         anchored = has_position or motion.anchored                  # in the telemetry's frame
         checked = yaw_rad is not None and self.mount_check.due(t_cap) and self.mount_check.add(motion.keyframes, yaw_rad)
         estimate = self.mount_check.estimate() if checked else None
+        placed = None if motion.position_ned_m is None else motion.position_ned_m.copy()
         return _StageOutcome(result, motion.last_reason, (POSE_TELEMETRY, 0) if anchored else (POSE_IMAGE, motion.odometry_epoch),
-                             not has_position, None if has_position else motion.image_pose, checked, estimate)
+                             not has_position, None if has_position else motion.image_pose, checked, estimate, placed)
 
     def _apply(self, done: Optional[Done[_StageOutcome]]) -> None:
         """Add a collected stage outcome to the evidence grid."""

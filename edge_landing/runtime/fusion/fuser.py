@@ -151,7 +151,7 @@ class LandingFuser:
         target = self.update(pred, state, now_s, image)
         reached = self._view is not before
         return FusionResult(target, self._view if reached else None, self._confirm.view if reached else None,
-                            self._confirm.mount_estimate)
+                            self._confirm.mount_estimate, self._confirm.placement if reached else None)
 
     def update(self, pred: Prediction, state: VehicleState | None = None, now_s: float | None = None,
                image: Optional[np.ndarray] = None) -> Target:

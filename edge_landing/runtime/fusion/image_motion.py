@@ -60,6 +60,12 @@ class ImagePoseConfig:
     # changed level, and the odometry starts over.
     agl_gate_m: float = 0.5
     agl_refused_max_s: float = 2.0
+    # A chained step that changes the velocity faster than this (+ 3 σ) is no flight: the odometry starts over. A
+    # flat roof taken for the ground scales the translation by the ratio of the heights (urban 1041 without
+    # position: 2.07 -> 5.45 m per frame at 10 frames/s, 340 m/s², and the frames drifted 10 m in 0.3 s). 5 g is
+    # far beyond a multirotor (about 17 m/s² horizontally at a 60° tilt) and above the sim flights' phase changes
+    # (up to 42 m/s² in one frame); it catches a wrong plane's onset, not a slow drift.
+    max_accel_mps2: float = 50.0
 
     def __post_init__(self) -> None:
         if self.max_features < 8 or self.min_inliers < 8:
@@ -72,6 +78,8 @@ class ImagePoseConfig:
         if not (self.agl_gate_m > 0 and self.agl_refused_max_s >= 0):
             raise InputError(f"image pose agl_gate_m must be > 0 and agl_refused_max_s >= 0, got {self.agl_gate_m}, "
                              f"{self.agl_refused_max_s}")
+        if not self.max_accel_mps2 > 0:
+            raise InputError(f"image pose max_accel_mps2 must be > 0, got {self.max_accel_mps2}")
         if not self.sigma_inflation >= 1:
             raise InputError(f"image pose sigma_inflation must be >= 1, got {self.sigma_inflation}")
         if not 0 < self.min_inlier_share <= 1 or not 0 <= self.agl_sigma_rel < 0.3:

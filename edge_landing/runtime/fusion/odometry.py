@@ -34,11 +34,12 @@ class ImageOdometry:
         self.estimate: Optional[ImagePose] = None
         self._telemetry_s = -math.inf        # when the last frame with a telemetry position came
         self._delta: Optional[np.ndarray] = None          # the last chained translation (the next one's prior)
+        self._velocity: Optional[tuple[np.ndarray, float]] = None   # of the last chained step (m/s, its 1-σ)
         self._refused_s: Optional[float] = None           # since when the reported height has been refused
 
     def reset(self) -> None:
         self.anchored, self.estimate, self._telemetry_s = False, None, -math.inf
-        self._delta, self._refused_s = None, None
+        self._delta, self._refused_s, self._velocity = None, None, None
 
     def telemetry_seen(self, time_s: float) -> None:
         """A frame came with a telemetry position: the next frames without one are chained from it."""
@@ -65,6 +66,9 @@ class ImageOdometry:
             return self._start_over(pose), why
         if height != pose.agl_m:         # the pair at the carried height's scale
             est = self.estimate = est.rescaled(height / pose.agl_m)
+        jump = self._implausible_step(est, time_s - prev.time_s)
+        if jump:
+            return self._start_over(pose), jump
         self._delta = est.delta_ned_m
         was = self.anchored or prev.source == POSE_TELEMETRY
         self.anchored = was and time_s - self._telemetry_s <= self.config.history_s
@@ -86,9 +90,25 @@ class ImageOdometry:
         return replace(pose, position_ned_m=ref.pose.position_ned_m + est.delta_ned_m), est
 
     def _start_over(self, pose: CameraPose) -> CameraPose:
-        self.anchored, self._delta, self._refused_s = False, None, None
+        self.anchored, self._delta, self._refused_s, self._velocity = False, None, None, None
         self.epoch += 1
         return replace(pose, position_ned_m=np.zeros(3))
+
+    def _implausible_step(self, est: ImagePose, step_s: float) -> str:
+        """Why the pair's translation is a step no multirotor flies after the previous one ('' when it is not):
+        the velocity changes by more than ``max_accel_mps2`` × the interval + 3 σ of the two steps."""
+        if not step_s > 0:
+            return ""
+        velocity, sigma = est.delta_ned_m / step_s, est.sigma_m / step_s
+        last, self._velocity = self._velocity, (velocity, sigma)
+        if last is None or not math.isfinite(sigma):
+            return ""
+        change = float(np.linalg.norm(velocity - last[0]))
+        limit = self.config.image_pose.max_accel_mps2
+        if change <= limit * step_s + 3.0 * math.hypot(sigma, last[1]):
+            return ""
+        return (f"the images' step changes the velocity by {change:.1f} m/s in {step_s:.2f} s, more than "
+                f"{limit:g} m/s² (a plane other than the ground taken for it)")
 
     def _carry_height(self, agl_m: float, prev: Keyframe, est: ImagePose, time_s: float
                       ) -> tuple[Optional[float], str]:

@@ -222,7 +222,8 @@ class Pipeline:
         target, said = result.target, ""
         if self.telemetry is not None:
             target, said = self.continuity.step(target, match.state if match.fresh else None, result.grid,
-                                                reached_fusion=work.pred.valid and match.fresh)
+                                                reached_fusion=work.pred.valid and match.fresh,
+                                                placement=result.placement)
         sent, why = False, "no link"
         if self.link is not None:
             self._announce_telemetry(match)
@@ -247,9 +248,11 @@ class Pipeline:
         self.last_target = target
         if self.decision_log is not None:
             spot = self.continuity.spot
+            in_ned = spot is not None and self.continuity.in_telemetry_frame()
             record = decision_record(target, pred, match.state, sent, why, self.scale.source,
                                      level_assumed=self.telemetry is None,
-                                     committed_ned_m=None if spot is None else spot.ned_m)
+                                     committed_ned_m=spot.ned_m if in_ned and spot is not None else None,
+                                     committed_odometry_m=spot.ned_m if not in_ned and spot is not None else None)
             self.decision_log.write(json.dumps(record) + "\n")
 
     def _recheck(self, target: Target, clock_lag_s: float) -> Target:

@@ -27,14 +27,15 @@ def describe_target(target: Optional[Target]) -> str:
 
 
 def decision_record(target: Target, pred: Prediction, state: Optional[VehicleState], sent: bool, why: str,
-                    scale_source: str, level_assumed: bool = False, committed_ned_m: Optional[Any] = None
-                    ) -> Dict[str, Any]:
+                    scale_source: str, level_assumed: bool = False, committed_ned_m: Optional[Any] = None,
+                    committed_odometry_m: Optional[Any] = None) -> Dict[str, Any]:
     """One ``--log`` line. ``sent`` is true only when the target really left the socket; ``not_sent_because``
     says why not; ``level_assumed`` marks an offline run without telemetry (level flight assumed); ``evidence``
     is "geometry+network" (confirmed by the drone's own motion) or "network only" (--allow-unconfirmed), with
     the baseline and detectable obstacle height of the spot's geometry cell; ``tracked_ned_m`` is the
     network's unconfirmed spot on a frame that sent none;
     ``committed_ned_m`` is the committed spot after this frame (local NED; None when there is none);
+    ``committed_odometry_m`` the same for a spot kept in image odometry's frame (telemetry without position);
     ``gimbal_mount_deg`` the mount a gimbal reported for the frame (None: the fixed mount)."""
     def vec(v: Optional[Any]) -> Optional[List[float]]:
         return None if v is None else [round(float(x), 4) for x in v]
@@ -45,7 +46,8 @@ def decision_record(target: Target, pred: Prediction, state: Optional[VehicleSta
             "confidence": _num(target.confidence), "scale": _num(pred.scale), "scale_source": scale_source,
             "telemetry": state is not None, "agl_m": None if state is None else state.agl_m,
             "level_assumed": level_assumed, "sent": sent, "not_sent_because": "" if sent else why,
-            "committed_ned_m": vec(committed_ned_m), "gimbal_mount_deg": _mount_deg(state),
+            "committed_ned_m": vec(committed_ned_m), "committed_odometry_m": vec(committed_odometry_m),
+            "gimbal_mount_deg": _mount_deg(state),
             # Which evidence vouched for the spot and the motion-geometry figures of its cell (§11).
             "evidence": target.evidence, "geometry_baseline_m": _num(target.geometry_baseline_m),
             "geometry_detectable_m": _num(target.geometry_detectable_m),

@@ -9,6 +9,11 @@ target lies elsewhere does not move a committed spot either: the spot is sent in
 not chase a target that jumps between near-equal spots while it descends (measured in the closed loop,
 docs/closed_loop.md). The spot is dropped when fresh evidence contradicts it, when telemetry goes stale, or
 after ``hold_s`` seconds without confirmation, and the drop is announced; then a new spot can be committed.
+Without a telemetry position (attitude and height above ground only) the same rules run in the frame the
+images placed the vehicle in (fusion.result.ImagePlacement): image odometry's own frame, which drifts, or one
+chained from the last telemetry position through a short gap. A spot there goes when that frame starts over or
+the position comes back (``spot_frame``), and on a frame the images could not place; a target held from it
+leaves as a body vector only (its local NED is not the autopilot's).
 Pure numpy; the pipeline does the sending.
 """
 from __future__ import annotations
@@ -24,9 +29,12 @@ from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.messages import Target, VehicleState
 from edge_landing.runtime.core.target_frames import aim_at_pose, aimed, target_ned
 from edge_landing.runtime.fusion.grid import GridView
+from edge_landing.runtime.fusion.result import ImagePlacement
 
 log = logging.getLogger(__name__)
 HELD = "held: committed spot from memory"
+TELEMETRY_FRAME, CHAINED_FRAME, ODOMETRY_FRAME = "telemetry", "chained", "odometry"
+SpotFrame = Tuple[str, int]       # (one of the three, the telemetry's position epoch or the odometry's number)
 
 
 @dataclass(frozen=True)
@@ -77,7 +85,7 @@ class Continuity:
         self._candidate_frames = 0
         self._contradicting_frames = 0
         self._last_step_s: Optional[float] = None
-        self._epoch = 0                    # VehicleState.position_epoch of the committed spot's frame
+        self._frame: SpotFrame = (TELEMETRY_FRAME, 0)   # the frame the spot is kept in (see spot_frame)
 
     def drop(self) -> Optional[str]:
         """Forget the spot; returns an announcement when there was one."""
@@ -86,20 +94,33 @@ class Continuity:
         return "" if had is not None else None
 
     def step(self, target: Target, state: Optional[VehicleState], grid: Optional[GridView],
-             reached_fusion: bool) -> Tuple[Target, str]:
+             reached_fusion: bool, placement: Optional[ImagePlacement] = None) -> Tuple[Target, str]:
         """The target to send for this frame and an announcement ('' when nothing to say).
 
         ``state`` is fresh telemetry at the capture time (None: not fresh, the spot is dropped);
         ``grid`` is this frame's grid (None when the frame did not reach it); ``reached_fusion`` is False for a
-        frame that had no evidence at all (invalid frame or model fault): nothing is sent for it, nothing dropped.
+        frame that had no evidence at all (invalid frame or model fault): nothing is sent for it, nothing dropped;
+        ``placement``: where the images placed a frame whose telemetry has no position (FusionResult.placement).
         """
         if state is None:
             return target, self._drop_said("telemetry not fresh")
-        if state.position_epoch != self._epoch:
-            # The autopilot's local frame moved: the spot's NED point now names another place.
-            # The frame's own target was fused in the new frame (fusion starts over on the same change).
-            self._epoch = state.position_epoch
-            return target, self._drop_said("position or heading jumped")
+        placed = state.position_ned_m is None and placement is not None
+        frame = spot_frame(state, placement)
+        if placement is not None and placed:
+            state, grid = placed_state(state, grid, placement)
+        moved = ""
+        if frame != self._frame:
+            # The autopilot's local frame moved (or the odometry's started over, or the spot's frame changed
+            # between the two): the spot's NED point now names another place. The frame's own target was fused
+            # in the new frame (fusion starts over on the same change): it is judged as any first target.
+            old, self._frame = self._frame, frame
+            moved = self._drop_said(_frame_change(old, frame))
+        target, said = self._judge(target, state, grid, reached_fusion, placed)
+        return target, moved or said
+
+    def _judge(self, target: Target, state: VehicleState, grid: Optional[GridView], reached_fusion: bool,
+               placed: bool) -> Tuple[Target, str]:
+        """``step`` once the state is in the spot's frame (``placed``: the images' frame, see placed_state)."""
         spot = self.spot
         if target.valid and spot is None:
             beyond = self._beyond_cone(target, state)
@@ -129,11 +150,16 @@ class Continuity:
         if aim is None:
             return target, self._drop_said("no vehicle position to re-express it")
         held = aimed(Target(target.frame_id, target.capture_time_s, True,
-                            f"{HELD} ({age:.1f} s; fusion: {target.reason})", position_ned_m=spot.ned_m.copy(),
+                            f"{HELD} ({age:.1f} s; fusion: {target.reason})",
+                            position_ned_m=None if placed else spot.ned_m.copy(),
                             clearance_m=spot.clearance_m, confidence=spot.confidence * self.config.held_confidence,
                             timings_s=target.timings_s, evidence=f"{spot.evidence} (held)" if spot.evidence else ""),
                      aim)
         return held, ""
+
+    def in_telemetry_frame(self) -> bool:
+        """Whether the committed spot's NED is the autopilot's local frame (not image odometry's)."""
+        return self._frame[0] == TELEMETRY_FRAME
 
     def _beyond_cone(self, target: Target, state: VehicleState) -> str:
         """Why a new spot is not taken: farther than ``cone_ratio`` × the height above it (the autopilot flies to
@@ -256,3 +282,35 @@ class Continuity:
         self.drop()
         log.warning("committed landing spot dropped: %s", why)
         return f"spot dropped: {why}"
+
+
+def spot_frame(state: VehicleState, placement: Optional[ImagePlacement]) -> SpotFrame:
+    """The frame a spot seen with ``state`` is kept in: the telemetry's (its position epoch), image odometry's own
+    (numbered by the odometry), or one chained from a telemetry position by the images during a short position
+    gap. A chained frame is apart from the telemetry's it came from: the position that comes back after a gap
+    (dead reckoning, a GPS glitch) may have drifted by metres without a jump to say so, and a spot carried over
+    would be re-expressed from it."""
+    if state.position_ned_m is not None or placement is None:
+        return TELEMETRY_FRAME, state.position_epoch
+    if placement.odometry_epoch is None:
+        return CHAINED_FRAME, state.position_epoch
+    return ODOMETRY_FRAME, placement.odometry_epoch
+
+
+def placed_state(state: VehicleState, grid: Optional[GridView], placement: ImagePlacement
+                 ) -> Tuple[VehicleState, Optional[GridView]]:
+    """``state`` with the vehicle where the images placed it, and fusion's vehicle-centred ``grid`` moved into the
+    same frame."""
+    p = np.asarray(placement.position_ned_m, dtype=np.float64).reshape(3)
+    state = replace(state, position_ned_m=p.copy())
+    if grid is not None and grid.frame == "vehicle":
+        grid = replace(grid, frame="ned", north0_m=grid.north0_m + float(p[0]), east0_m=grid.east0_m + float(p[1]))
+    return state, grid
+
+
+def _frame_change(old: SpotFrame, new: SpotFrame) -> str:
+    if old[0] == new[0] == TELEMETRY_FRAME:
+        return "position or heading jumped"
+    if old[0] == new[0] == ODOMETRY_FRAME:
+        return "image odometry started over"
+    return "its frame changed (telemetry position and image odometry)"
