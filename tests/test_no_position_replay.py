@@ -5,7 +5,6 @@ local NED position (the odometry's frame is not the autopilot's)."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -19,9 +18,8 @@ from tests.run_helpers import read_decisions
 sim = pytest.importorskip("edge_landing.sim", reason="the sim extra (embreex) renders the test world")
 from edge_landing.benchmarks.flat_model import flat_ground_model  # noqa: E402
 from edge_landing.benchmarks.landing_truth import TruthConfig, check_target  # noqa: E402
-from edge_landing.sim.tlog_writer import LOG_START_UNIX_S  # noqa: E402
 from tests.test_motion import FPS, _flat_world, _frames  # noqa: E402
-from tests.test_tlog import write_tlog  # noqa: E402
+from tests.test_tlog import hand_made_log  # noqa: E402
 
 AGL_M = 25.0
 LEAD_S = 1.0          # the log starts this long before the first frame
@@ -30,26 +28,6 @@ LEAD_S = 1.0          # the log starts this long before the first frame
 def _path() -> list:
     """The low pass of tests/test_image_motion.py: 0.3 m per frame north, weaving east, 25 m up."""
     return [(-14.0 + 0.3 * k, -3.0 + 2.0 * math.sin(0.2 * k), -AGL_M) for k in range(60)]
-
-
-def _attitude_and_rangefinder_log(path: Path, seconds: float) -> Path:
-    """An ArduPilot-like autopilot without GPS at 20 Hz: ATTITUDE (level, yaw 0) and a downward rangefinder, its
-    estimator reporting attitude and height only; no LOCAL_POSITION_NED, no GLOBAL_POSITION_INT."""
-    m = load_mavutil().mavlink
-    ap, packets = (1, 1), []
-    for j in range(int(seconds * 20) + 1):
-        t = j / 20
-        ms = int(5000 + 1000 * t)
-        arrival = LOG_START_UNIX_S + t + 0.01
-        if j % 20 == 0:
-            packets.append((arrival, m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                                                                 0, 0, m.MAV_STATE_ACTIVE, 3), ap))
-        packets.append((arrival, m.MAVLink_attitude_message(ms, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), ap))
-        packets.append((arrival, m.MAVLink_distance_sensor_message(ms, 20, 13000, round(100 * AGL_M), 0, 0, 25, 0), ap))
-        if j % 10 == 0:
-            flags = m.EKF_ATTITUDE | m.EKF_POS_VERT_ABS | m.EKF_POS_VERT_AGL
-            packets.append((arrival, m.MAVLink_ekf_status_report_message(flags, 0.1, 0.1, 0.1, 0.1, 0.0), ap))
-    return write_tlog(path, packets)
 
 
 def test_edge_run_without_a_position_holds_a_spot_in_the_images_frame(tmp_path):
@@ -61,7 +39,9 @@ def test_edge_run_without_a_position_holds_a_spot_in_the_images_frame(tmp_path):
     for k, _t, r, state in _frames(world, _path()):
         cv2.imwrite(str(folder / f"{k:04d}.png"), cv2.cvtColor(r.rgb, cv2.COLOR_RGB2BGR))
         states.append(state)
-    tlog = _attitude_and_rangefinder_log(tmp_path / "nogps.tlog", LEAD_S + len(states) / FPS + 1.0)
+    m = load_mavutil().mavlink       # an autopilot without GPS: its estimator has attitude and height only
+    tlog = hand_made_log(tmp_path / "nogps.tlog", m.EKF_ATTITUDE | m.EKF_POS_VERT_ABS | m.EKF_POS_VERT_AGL,
+                         end_s=LEAD_S + len(states) / FPS + 1.0, agl_m=AGL_M, position=False)
     model = flat_ground_model(tmp_path / "flat.onnx", agl_m=AGL_M)      # the lying network: flat ground everywhere
     log = tmp_path / "run.jsonl"
     assert main(["--camera", str(folder), "--fps", f"{FPS:g}", "--model", str(model), "--tlog", str(tlog),

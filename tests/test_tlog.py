@@ -56,9 +56,10 @@ def write_tlog(path: Path, packets: list) -> Path:
 
 
 def hand_made_log(path: Path, ekf_flags: int, end_s: float = 3.0, pitch_rad: float = 0.0,
-                  gimbal_pitch_deg: float | None = None) -> Path:
-    """An ArduPilot-like autopilot at 20 Hz for ``end_s`` seconds from LOG_START_UNIX_S, hovering 10 m up, pitched
-    ``pitch_rad``; with ``gimbal_pitch_deg`` it also reports the gimbal it drives (that far below the horizon)."""
+                  gimbal_pitch_deg: float | None = None, agl_m: float = 10.0, position: bool = True) -> Path:
+    """An ArduPilot-like autopilot at 20 Hz for ``end_s`` seconds from LOG_START_UNIX_S, hovering ``agl_m`` up,
+    pitched ``pitch_rad``; with ``gimbal_pitch_deg`` it also reports the gimbal it drives (that far below the
+    horizon); without ``position`` it sends no LOCAL_POSITION_NED (no GPS)."""
     m = load_mavutil().mavlink
     ap = (1, 1)
     tilt = 1.0 / np.cos(pitch_rad)
@@ -71,8 +72,10 @@ def hand_made_log(path: Path, ekf_flags: int, end_s: float = 3.0, pitch_rad: flo
             packets.append((arrival, m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA,
                                                                  0, 0, m.MAV_STATE_ACTIVE, 3), ap))
         packets.append((arrival, m.MAVLink_attitude_message(ms, 0.0, pitch_rad, 0.0, 0.0, 0.0, 0.0), ap))
-        packets.append((arrival, m.MAVLink_local_position_ned_message(ms, 0.0, 0.0, -10.0, 0.0, 0.0, 0.0), ap))
-        packets.append((arrival, m.MAVLink_distance_sensor_message(ms, 20, 13000, round(1000 * tilt), 0, 0, 25, 0), ap))
+        if position:
+            packets.append((arrival, m.MAVLink_local_position_ned_message(ms, 0.0, 0.0, -agl_m, 0.0, 0.0, 0.0), ap))
+        packets.append((arrival, m.MAVLink_distance_sensor_message(ms, 20, 13000, round(100 * agl_m * tilt), 0, 0, 25,
+                                                                   0), ap))
         if gimbal_pitch_deg is not None:
             packets.append((arrival, m.MAVLink_gimbal_device_attitude_status_message(
                 0, 0, ms, m.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, quat(0.0, gimbal_pitch_deg, 0.0),
