@@ -81,7 +81,7 @@ class _StageOutcome:
     image_pose: Optional[ImagePose]         # the image-only estimate then (None: none yet)
     mount_checked: bool                     # the mount check took a pair and estimated again ...
     mount_estimate: Optional[MountEstimate]  # ... this (None: not enough agreement yet)
-    position_ned_m: Optional[np.ndarray]    # where the frame was placed (None: the stage could not use it)
+    position_ned_m: Optional[np.ndarray]    # where the images placed a frame without position (None: not placed)
 
 
 def _placement(out: _StageOutcome) -> Optional[ImagePlacement]:
@@ -161,8 +161,10 @@ class GeometryConfirmation:
                     self.placement = _placement(done.value)
             elif not collected:
                 self.note = "no new geometry (this frame's pair is measured while the next frame is inferred)"
-        # Without a position the stage ran inline above, so its state is not in use on a thread.
-        origin = position if position is not None else self.motion.position_ned_m
+        # Without a position the stage ran inline above: this frame's placement is where the images put it.
+        origin = position
+        if origin is None and self.placement is not None:
+            origin = self.placement.position_ned_m
         if origin is None:
             return None
         self.grid.centre_on(float(origin[0]), float(origin[1]))
@@ -200,7 +202,7 @@ class GeometryConfirmation:
         anchored = has_position or motion.anchored                  # in the telemetry's frame
         checked = yaw_rad is not None and self.mount_check.due(t_cap) and self.mount_check.add(motion.keyframes, yaw_rad)
         estimate = self.mount_check.estimate() if checked else None
-        placed = None if motion.position_ned_m is None else motion.position_ned_m.copy()
+        placed = None if has_position or motion.position_ned_m is None else motion.position_ned_m.copy()
         return _StageOutcome(result, motion.last_reason, (POSE_TELEMETRY, 0) if anchored else (POSE_IMAGE, motion.odometry_epoch),
                              not has_position, None if has_position else motion.image_pose, checked, estimate, placed)
 

@@ -248,11 +248,12 @@ class Pipeline:
         self.last_target = target
         if self.decision_log is not None:
             spot = self.continuity.spot
-            in_ned = spot is not None and self.continuity.in_telemetry_frame()
+            where = None if spot is None else spot.ned_m
+            in_ned = self.continuity.in_telemetry_frame()
             record = decision_record(target, pred, match.state, sent, why, self.scale.source,
                                      level_assumed=self.telemetry is None,
-                                     committed_ned_m=spot.ned_m if in_ned and spot is not None else None,
-                                     committed_odometry_m=spot.ned_m if not in_ned and spot is not None else None)
+                                     committed_ned_m=where if in_ned else None,
+                                     committed_odometry_m=None if in_ned else where)
             self.decision_log.write(json.dumps(record) + "\n")
 
     def _recheck(self, target: Target, clock_lag_s: float) -> Target:

@@ -12,7 +12,7 @@ after ``hold_s`` seconds without confirmation, and the drop is announced; then a
 Without a telemetry position (attitude and height above ground only) the same rules run in the frame the
 images placed the vehicle in (fusion.result.ImagePlacement): image odometry's own frame, which drifts, or one
 chained from the last telemetry position through a short gap. A spot there goes when that frame starts over or
-the position comes back (``spot_frame``), and on a frame the images could not place; a target held from it
+the position comes back (``in_spot_frame``), and on a frame the images could not place; a target held from it
 leaves as a body vector only (its local NED is not the autopilot's).
 Pure numpy; the pipeline does the sending.
 """
@@ -85,7 +85,7 @@ class Continuity:
         self._candidate_frames = 0
         self._contradicting_frames = 0
         self._last_step_s: Optional[float] = None
-        self._frame: SpotFrame = (TELEMETRY_FRAME, 0)   # the frame the spot is kept in (see spot_frame)
+        self._frame: SpotFrame = (TELEMETRY_FRAME, 0)   # the frame the spot is kept in (see in_spot_frame)
 
     def drop(self) -> Optional[str]:
         """Forget the spot; returns an announcement when there was one."""
@@ -104,10 +104,8 @@ class Continuity:
         """
         if state is None:
             return target, self._drop_said("telemetry not fresh")
-        placed = state.position_ned_m is None and placement is not None
-        frame = spot_frame(state, placement)
-        if placement is not None and placed:
-            state, grid = placed_state(state, grid, placement)
+        state, grid, frame = in_spot_frame(state, grid, placement)
+        placed = frame[0] != TELEMETRY_FRAME
         moved = ""
         if frame != self._frame:
             # The autopilot's local frame moved (or the odometry's started over, or the spot's frame changed
@@ -120,7 +118,7 @@ class Continuity:
 
     def _judge(self, target: Target, state: VehicleState, grid: Optional[GridView], reached_fusion: bool,
                placed: bool) -> Tuple[Target, str]:
-        """``step`` once the state is in the spot's frame (``placed``: the images' frame, see placed_state)."""
+        """``step`` once the state is in the spot's frame (``placed``: the images' frame, see in_spot_frame)."""
         spot = self.spot
         if target.valid and spot is None:
             beyond = self._beyond_cone(target, state)
@@ -284,28 +282,23 @@ class Continuity:
         return f"spot dropped: {why}"
 
 
-def spot_frame(state: VehicleState, placement: Optional[ImagePlacement]) -> SpotFrame:
-    """The frame a spot seen with ``state`` is kept in: the telemetry's (its position epoch), image odometry's own
-    (numbered by the odometry), or one chained from a telemetry position by the images during a short position
-    gap. A chained frame is apart from the telemetry's it came from: the position that comes back after a gap
-    (dead reckoning, a GPS glitch) may have drifted by metres without a jump to say so, and a spot carried over
-    would be re-expressed from it."""
+def in_spot_frame(state: VehicleState, grid: Optional[GridView], placement: Optional[ImagePlacement]
+                  ) -> Tuple[VehicleState, Optional[GridView], SpotFrame]:
+    """``state`` and fusion's ``grid`` in the frame a spot seen with them is kept in, and that frame: the
+    telemetry's (its position epoch; both unchanged), or, for a frame without a telemetry position that the images
+    placed, image odometry's own (numbered by the odometry) or one chained from a telemetry position by the images
+    during a short gap; the vehicle is then where the images placed it and the vehicle-centred grid is moved there.
+    A chained frame is apart from the telemetry's it came from: the position that comes back after a gap (dead
+    reckoning, a GPS glitch) may have drifted by metres without a jump to say so, and a spot carried over would
+    be re-expressed from it."""
     if state.position_ned_m is not None or placement is None:
-        return TELEMETRY_FRAME, state.position_epoch
-    if placement.odometry_epoch is None:
-        return CHAINED_FRAME, state.position_epoch
-    return ODOMETRY_FRAME, placement.odometry_epoch
-
-
-def placed_state(state: VehicleState, grid: Optional[GridView], placement: ImagePlacement
-                 ) -> Tuple[VehicleState, Optional[GridView]]:
-    """``state`` with the vehicle where the images placed it, and fusion's vehicle-centred ``grid`` moved into the
-    same frame."""
+        return state, grid, (TELEMETRY_FRAME, state.position_epoch)
+    odometry = placement.odometry_epoch
+    frame = (CHAINED_FRAME, state.position_epoch) if odometry is None else (ODOMETRY_FRAME, odometry)
     p = np.asarray(placement.position_ned_m, dtype=np.float64).reshape(3)
-    state = replace(state, position_ned_m=p.copy())
     if grid is not None and grid.frame == "vehicle":
         grid = replace(grid, frame="ned", north0_m=grid.north0_m + float(p[0]), east0_m=grid.east0_m + float(p[1]))
-    return state, grid
+    return replace(state, position_ned_m=p.copy()), grid, frame
 
 
 def _frame_change(old: SpotFrame, new: SpotFrame) -> str:
