@@ -21,6 +21,7 @@ from edge_landing.benchmarks import (
     landing_truth,
     lying_model,
     nadir_depth,
+    narrow_obstacles,
     quant_variants,
     resolution_sweep,
     soak,
@@ -46,6 +47,23 @@ def tiny_scene(path: Path, frames: int = 3) -> Path:
     for i in range(frames):
         cv2.imwrite(str(path / "rgb" / f"{i:06d}.png"), np.full((16, 24, 3), 100 + i, np.uint8))
     return path
+
+
+# --- narrow_obstacles ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv,expected", [
+    (["--heights", "5"], "--heights"),
+    (["--heights", "40", "nan"], "--heights"),
+    (["--box", "0", "0.3", "1.7"], "--box"),
+    (["--spacing", "0.2"], "--spacing"),
+    (["--frames", "1"], "--frames"),
+    (["--material", "water"], "--material"),
+    (["--top", "nothing"], "--top"),
+    (["--colour", "2", "0", "0"], "--colour"),
+    (["--json", "{t}/adir"], "--json"),
+])
+def test_narrow_obstacles(capsys, files, argv, expected):
+    one_line_error(capsys, narrow_obstacles.main, [a.format(t=files) for a in argv], expected)
 
 
 # --- lying_model ---------------------------------------------------------------------------------------------

@@ -160,6 +160,29 @@ def test_worlds_have_the_style_features():
     assert set(np.unique(sub.ground.cells)) >= {Material.GRASS, Material.ASPHALT, Material.MARKING, Material.CONCRETE}
 
 
+def test_people_stand_around_the_spots_and_leave_the_world_otherwise_as_it_was():
+    """lying_model --people: person-sized boxes (0.45 × 0.28 m, 1.5-1.9 m) on the ground 6-25 m from each
+    landing spot; the town and its hazards are the same triangles as without them."""
+    from edge_landing.sim.hazards import PeopleConfig
+
+    plain, crowd = sim.build_world("suburban", SEED, hazards=True), sim.build_world("suburban", SEED, hazards=True,
+                                                                                     people=True)
+    added = crowd.tris[len(plain.tris):]
+    assert np.array_equal(crowd.tris[:len(plain.tris)], plain.tris)
+    per_person = 10                                           # a box: 5 faces (no floor) of 2 triangles
+    assert len(added) == per_person * PeopleConfig().per_spot * len(plain.landing_spots)
+    cfg = PeopleConfig()
+    for k, person in enumerate(added.reshape(-1, per_person, 3, 3)[:50]):
+        pts = person.reshape(-1, 3)
+        centre = pts[:, :2].mean(axis=0)
+        extent = pts[:, :2].max(axis=0) - pts[:, :2].min(axis=0)
+        assert 0.28 <= extent.min() and extent.max() <= 0.45 * math.sqrt(2) + 1e-3     # any yaw
+        ground = plain.terrain.z_at_point(*centre)
+        assert 1.5 - 1e-3 <= ground - pts[:, 2].min() <= 1.9 + 1e-3                     # standing on the terrain
+        own_spot = plain.landing_spots[k // cfg.per_spot]                 # placed spot by spot, in order
+        assert cfg.keep_clear_m - 1e-3 <= np.hypot(*(own_spot - centre)) <= cfg.ring_m + 1e-3
+
+
 def test_flight_writes_a_video_and_descends(tmp_path):
     import cv2
 

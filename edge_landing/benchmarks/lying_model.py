@@ -11,6 +11,7 @@ from memory on frames without a fresh confirmation). Every sent target is judged
 against the world (benchmarks/landing_truth.check_target). Also: motion geometry alone, per cell, against
 the world's heights (recall of obstacles >= 1 m among cells it measured to <= 1 m, at 30-60 m AGL).
 
+``--people`` adds people standing around the landing spots (sim.hazards.people_part; not in edge-sim's worlds).
 ``--no-position`` replays telemetry with attitude and height above ground but no position: geometry then runs
 on the image-only pose (fusion.image_motion); targets are judged where they point from the true pose.
 ``--pose-errors typical|harsh`` adds an autopilot's estimation errors to the telemetry fusion sees
@@ -57,6 +58,7 @@ class ReplayConfig:
     obstacle_height_m: float = 0.5
     recall_every: int = 10            # frames between per-cell geometry checks
     hazards: bool = True              # hazard-rich worlds (sim.hazards)
+    people: bool = False              # people standing around the spots too (sim.hazards.people_part)
     width: int = 320                  # camera size: the networks see it resized, motion geometry crops it
     height: int = 240
     trace: str = ""                   # JSON lines, one per frame and model: why a target was (not) sent
@@ -133,7 +135,7 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
 
     scfg = SimConfig(out=Path("."), frames=cfg.frames, style=sim.Style.from_string(cfg.style), seed=cfg.seed,
                      flight=True, fps=cfg.fps, width=cfg.width, height=cfg.height)
-    world = sim.build_world(scfg.style, cfg.seed, hazards=cfg.hazards)
+    world = sim.build_world(scfg.style, cfg.seed, hazards=cfg.hazards, people=cfg.people)
     mount = Mount()
     intr = scfg.intrinsics
     renderer = sim.Renderer(world, intr, mount)
@@ -269,6 +271,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--obstacle-height", type=float, default=0.5)
     p.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"), help="camera size")
     p.add_argument("--no-hazards", action="store_true", help="the plain towns (no sim.hazards)")
+    p.add_argument("--people", action="store_true", help="people standing around the landing spots too: a pixel "
+                   "or two wide at 640 px from 40 m, narrower than motion geometry resolves")
     p.add_argument("--no-position", action="store_true", help="telemetry without position (image-only pose)")
     p.add_argument("--pose-errors", default="none", help="an autopilot's estimation errors added to the telemetry "
                    "fusion sees: none (the simulator's exact pose), typical or harsh (benchmarks.pose_errors)")
@@ -281,11 +285,13 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     _check_args(a)
     result = replay(ReplayConfig(a.style, a.seed, a.frames, models=tuple(a.models),
                                  obstacle_height_m=a.obstacle_height, width=a.size[0], height=a.size[1],
-                                 hazards=not a.no_hazards, trace=a.trace, no_position=a.no_position,
+                                 hazards=not a.no_hazards, people=a.people, trace=a.trace,
+                                 no_position=a.no_position,
                                  pose_errors=PoseErrors.from_string(a.pose_errors).config(a.error_seed),
                                  geometry_timing=StageTiming.from_string(a.geometry_timing)),
                     progress=True)
     print(f"{a.style} seed {a.seed}, {a.frames} frames, camera {a.size[0]}x{a.size[1]}"
+          + (", people standing around the spots" if a.people else "")
           + (", telemetry without position" if a.no_position else "")
           + (f", {a.pose_errors} pose errors (seed {a.error_seed})" if a.pose_errors != "none" else "")
           + f", geometry {a.geometry_timing}")

@@ -7,6 +7,10 @@ landing spot (parks, backyards, plazas) a seeded mix is placed in a ring between
 kiosks, roof-unit sized boxes). The spot itself stays open (flights pick spots clear within 5 m), so a
 landing is still possible, next to things that stick out by 0.5–10 m. Uses its own Generator (seeded from
 the world's seed), so the town's layout is the same with or without hazards.
+
+People (``people_part``, opt-in) stand around the same spots: 0.45 × 0.28 m across and 1.5-1.9 m tall, a
+pixel or two wide to a 640-pixel camera 40 m up, which is what makes them the hardest hazard for motion
+geometry (docs/MEASUREMENTS.md, "Narrow obstacles").
 """
 from __future__ import annotations
 
@@ -22,6 +26,8 @@ from .world import Material, Terrain
 WALL_TINT = np.array([0.72, 0.70, 0.66], np.float32)
 POLE_TINT = np.array([0.45, 0.45, 0.47], np.float32)
 CLUTTER_TINTS = np.array([[0.60, 0.55, 0.45], [0.35, 0.38, 0.40], [0.75, 0.72, 0.68]], np.float32)
+CLOTHING_TINTS = np.array([[0.15, 0.18, 0.35], [0.55, 0.12, 0.10], [0.80, 0.78, 0.70], [0.20, 0.20, 0.20],
+                           [0.30, 0.45, 0.25]], np.float32)
 
 
 @dataclass(frozen=True)
@@ -31,6 +37,18 @@ class HazardConfig:
     per_spot: int = 25
     keep_clear_m: float = 7.0     # nothing closer to the spot's centre than this (its 5 m disc stays open)
     ring_m: float = 30.0          # ... nor farther than this
+
+
+@dataclass(frozen=True)
+class PeopleConfig:
+    """Metres; ``per_spot`` people standing around every landing spot, its open disc included (people walk into
+    the places a drone would land: the flight must find a spot without them)."""
+
+    per_spot: int = 6
+    keep_clear_m: float = 0.0
+    ring_m: float = 20.0
+    half_width_m: tuple[float, float] = (0.225, 0.14)   # shoulders by chest, halved
+    height_m: tuple[float, float] = (1.5, 1.9)
 
 
 def hazard_part(rng: np.random.Generator, terrain: Terrain, spots: np.ndarray,
@@ -65,3 +83,17 @@ def _one(col: Collector, rng: np.random.Generator, n: float, e: float, bearing: 
     else:                                                     # clutter: crates, kiosks, roof-unit boxes
         col.box(n, e, rng.uniform(0.5, 2.0), rng.uniform(0.5, 2.0), yaw, rng.uniform(0.5, 2.5), Material.CLUTTER,
                 CLUTTER_TINTS[rng.integers(len(CLUTTER_TINTS))])
+
+
+def people_part(rng: np.random.Generator, terrain: Terrain, spots: np.ndarray,
+                config: PeopleConfig = PeopleConfig()) -> Part:
+    """People standing around ``spots`` (N×2 north, east) on ``terrain``: one box each, in clothing colours."""
+    col = Collector(rng, terrain)
+    hx, hy = config.half_width_m
+    for n0, e0 in np.asarray(spots, np.float64).reshape(-1, 2):
+        for _ in range(config.per_spot):
+            r = math.sqrt(rng.uniform(config.keep_clear_m ** 2, config.ring_m ** 2))
+            a = rng.uniform(0.0, 2.0 * math.pi)
+            col.box(n0 + r * math.cos(a), e0 + r * math.sin(a), hx, hy, rng.uniform(0.0, math.pi),
+                    rng.uniform(*config.height_m), Material.CLUTTER, CLOTHING_TINTS[rng.integers(len(CLOTHING_TINTS))])
+    return col.build()

@@ -219,12 +219,14 @@ def _finish(style: Style, seed: int, part: Part, terrain: Terrain, ground: Groun
 
 
 @lru_cache(maxsize=4)
-def build_world(style: Style | str, seed: int, hazards: bool = False) -> World:
+def build_world(style: Style | str, seed: int, hazards: bool = False, people: bool = False) -> World:
     """The world for (style, seed): deterministic, cached per process (a second call is free).
 
     ``hazards``: cars, bushes, trees, low walls, poles and clutter around the landing spots (sim.hazards),
     from their own Generator, so the town's layout does not depend on it. Off by default: the existing
     seeds' tests judge the network alone, which these hazards defeat (edge-sim --hazards, lying_model).
+    ``people``: people standing around the landing spots (sim.hazards.people_part), from a Generator of their
+    own, so a world with people is the same world otherwise (lying_model --people).
     """
     from .towns import suburban_layout, urban_layout
 
@@ -249,4 +251,9 @@ def build_world(style: Style | str, seed: int, hazards: bool = False) -> World:
 
         hazard_rng = np.random.default_rng([int(seed), 0x4A2A, 1 if style is Style.URBAN else 0])
         part = Part.concat([part, hazard_part(hazard_rng, terrain, spots)])
+    if people:
+        from .hazards import people_part
+
+        people_rng = np.random.default_rng([int(seed), 0x9E0, {Style.SUBURBAN: 0, Style.URBAN: 1}.get(style, 2)])
+        part = Part.concat([part, people_part(people_rng, terrain, spots)])
     return _finish(style, int(seed), part, terrain, ground, spots)
