@@ -10,6 +10,7 @@ import pytest
 
 from edge_landing.runtime.fusion.image_checks import (
     ImageCheckConfig,
+    along_epipolar_lines,
     moved_as_posed,
     predicted_motion_px,
     sensor_noise_grey,
@@ -79,6 +80,23 @@ def test_texture_that_is_only_noise_does_not_count_beyond_it():
     assert beyond0.mean() > 0.99 and tex0.mean() > 0.99
 
 
+def test_an_edge_along_the_epipolar_lines_cannot_confirm_one_across_them_can():
+    """A bright 2-pixel line (a low wall seen along the flight) on noisy texture: when the epipolar lines run
+    along it (the epipole far above the window, as in forward flight) its pixels and two either side are flagged;
+    when they cross it (the epipole to the side) nothing is; plain texture is hardly ever flagged."""
+    grey = _texture(80, 100, seed=3).astype(np.float32) * 0.25 + 96
+    grey[:, 49:51] = 230
+    grey = grey.astype(np.uint8)
+    above, beside = np.array([50.0, -500.0, 1.0]), np.array([1.0, 0.0, 0.0])   # homogeneous; z = 0: at infinity
+    along = along_epipolar_lines(grey, above, (0, 0), CFG)
+    assert along[10:70, 47:53].all()
+    assert along[:, :40].mean() < 0.05 and along[:, 60:].mean() < 0.05
+    assert not along_epipolar_lines(grey, beside, (0, 0), CFG)[10:70, 45:55].any()
+    # The window's offset in the frame counts: the same epipole seen from a window far to its right is beside.
+    assert not along_epipolar_lines(grey, np.array([50.0, 40.0, 1.0]), (-2000, 0), CFG)[10:70, 45:55].any()
+    assert not along_epipolar_lines(grey, above, (0, 0), replace(CFG, epipolar_edge_ratio=0.0)).any()
+
+
 def test_predicted_motion_is_the_homography_shift():
     shift = np.array([[1.0, 0.0, 4.0], [0.0, 1.0, -3.0], [0.0, 0.0, 1.0]])
     assert predicted_motion_px(shift, slice(10, 50), slice(20, 80)) == pytest.approx(5.0)
@@ -109,6 +127,10 @@ def test_config_is_checked():
         ImageCheckConfig(noise_box_px=0)
     with pytest.raises(InputError, match="min_beyond_noise_share"):
         ImageCheckConfig(min_beyond_noise_share=-0.1)
+    with pytest.raises(InputError, match="epipolar_edge_ratio"):
+        ImageCheckConfig(epipolar_edge_ratio=1.0)
+    with pytest.raises(InputError, match="epipolar_box_px"):
+        ImageCheckConfig(epipolar_box_px=0)
 
 
 pytest.importorskip("embreex")

@@ -19,6 +19,14 @@ Motion geometry reads "no parallax" as "level ground". Two inputs give no parall
   confirmations; at 1.2 noise passes in scattered clusters, and a cell confirms only when all its pixels do.
   Pixels failing either check may still report an obstacle (a smooth wall's face reads partly high) but cannot
   confirm, like a pixel whose DIS patch is too large (fusion.motion).
+- **Texture that runs along the parallax.** Parallax moves a point along its epipolar line (away from the
+  image of the other camera's centre). An edge lying along that line (a low wall, a kerb or a fence seen along
+  the flight's direction) looks the same wherever it slides along it: the aperture problem. DIS then takes the
+  flow of the ground around it, and a 0.87 m wall 0.24 m thick running along the flight read as level ground
+  (sent targets beside it on a generated flight; benchmarks/narrow_obstacles.py). A pixel within
+  ``epipolar_edge_grow_px`` of one whose neighbourhood (``epipolar_box_px``, long enough that grass texture
+  averages out) has less than ``epipolar_edge_ratio`` of its gradient energy along the epipolar line, and a
+  clear edge across it, may not confirm in that pair; a pair with another baseline direction can.
 - **Images that did not move as the vehicle did.** A frozen feed (the camera or its driver repeating the last
   image) or telemetry that does not belong to the frames: the poses predict that the ground moved by a pixel or
   more, yet the reference image matches the current one better where it was than where the poses put it.
@@ -47,6 +55,10 @@ class ImageCheckConfig:
     min_beyond_noise_share: float = 0.15   # share of that neighbourhood a pixel needs to confirm
     noise_bands: int = 8                # brightness bands the noise is measured in
     min_band_px: int = 300              # a band with fewer pixels takes the whole image's noise
+    epipolar_box_px: int = 9            # an edge's direction is judged over this box (a wall's length, not grass)
+    epipolar_edge_ratio: float = 0.15   # gradient energy along the epipolar line below this share of that across
+    epipolar_edge_floor: float = 10.0   # ... and that across at least this (grey levels² per pixel²): an edge
+    epipolar_edge_grow_px: int = 2      # pixels this close to one may not confirm either (DIS's patch reach)
     min_predicted_motion_px: float = 1.0   # below this the two errors differ by noise only: not checked
     still_match_ratio: float = 0.5      # unwarped error below this share of the warped one: images did not move
 
@@ -54,7 +66,12 @@ class ImageCheckConfig:
         for name in ("min_texture_grey_px", "min_predicted_motion_px", "still_match_ratio", "noise_texture_ratio"):
             if not getattr(self, name) > 0:
                 raise InputError(f"image check {name} must be > 0, got {getattr(self, name)}")
-        for name in ("texture_box_px", "noise_box_px", "noise_bands", "min_band_px"):
+        if not 0 <= self.epipolar_edge_ratio < 1 or not self.epipolar_edge_floor >= 0 \
+                or self.epipolar_edge_grow_px < 0:
+            raise InputError(f"image check epipolar_edge_ratio must be in [0, 1), epipolar_edge_floor and "
+                             f"epipolar_edge_grow_px >= 0, got {self.epipolar_edge_ratio}, "
+                             f"{self.epipolar_edge_floor}, {self.epipolar_edge_grow_px}")
+        for name in ("texture_box_px", "noise_box_px", "noise_bands", "min_band_px", "epipolar_box_px"):
             if getattr(self, name) < 1:
                 raise InputError(f"image check {name} must be >= 1, got {getattr(self, name)}")
         for name in ("min_textured_share", "min_beyond_noise_share"):
@@ -128,6 +145,31 @@ def texture_masks(grey: np.ndarray, config: ImageCheckConfig) -> tuple[np.ndarra
     box = (config.noise_box_px, config.noise_box_px)
     share = cv2.boxFilter(beyond, -1, box, borderType=cv2.BORDER_REFLECT)
     return tex, share >= np.float32(config.min_beyond_noise_share)
+
+
+def along_epipolar_lines(grey: np.ndarray, epipole: np.ndarray, origin_xy: tuple[int, int],
+                         config: ImageCheckConfig) -> np.ndarray:
+    """H×W bool: pixels of the window ``grey`` at or near an edge that runs along the pair's epipolar lines (the
+    module docstring). ``epipole``: the reference camera's centre in the current frame, homogeneous pixel
+    coordinates (3,; z = 0 when it lies at infinity); ``origin_xy``: the window's top-left pixel in the frame."""
+    if config.epipolar_edge_ratio <= 0:
+        return np.zeros(grey.shape, dtype=bool)
+    a, b, c = _structure(grey, config.epipolar_box_px)
+    h, w = grey.shape
+    x = np.arange(w, dtype=np.float32) + np.float32(origin_xy[0])
+    y = np.arange(h, dtype=np.float32) + np.float32(origin_xy[1])
+    ex, ey, ez = (np.float32(v) for v in epipole)
+    dx = np.broadcast_to(ex - ez * x[None, :], (h, w))
+    dy = np.broadcast_to(ey - ez * y[:, None], (h, w))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = np.float32(1.0) / np.sqrt(dx * dx + dy * dy)
+    ux, uy = dx * inv, dy * inv                           # NaN at the epipole itself: no direction, not blind
+    along = a * ux * ux + 2 * b * ux * uy + c * uy * uy   # gradient energy along the epipolar line ...
+    across = a * uy * uy - 2 * b * ux * uy + c * ux * ux  # ... and across it (an edge along the line)
+    edge = (along < np.float32(config.epipolar_edge_ratio) * across) & (across >= np.float32(config.epipolar_edge_floor))
+    k = 2 * config.epipolar_edge_grow_px + 1
+    out: np.ndarray = cv2.dilate(edge.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+    return out
 
 
 def predicted_motion_px(hom: np.ndarray, rows: slice, cols: slice) -> float:

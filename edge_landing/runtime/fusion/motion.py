@@ -22,7 +22,12 @@ import cv2
 import numpy as np
 
 from edge_landing.runtime.core.camera import Intrinsics, Mount
-from edge_landing.runtime.fusion.image_checks import moved_as_posed, predicted_motion_px, texture_masks
+from edge_landing.runtime.fusion.image_checks import (
+    along_epipolar_lines,
+    moved_as_posed,
+    predicted_motion_px,
+    texture_masks,
+)
 from edge_landing.runtime.fusion.image_motion import ImagePose, plane_prediction_sigma
 from edge_landing.runtime.fusion.keyframes import (
     Keyframe,
@@ -360,6 +365,8 @@ class MotionStage:
         # patch is too large, may report an obstacle but not confirm: its flow is its neighbours' (a smooth
         # wall's face still reads partly high; a blank image or a pond next to its bank reads level).
         resolved = (patch_px * rng / f <= cfg.max_patch_footprint_m) & tex & beyond_noise
+        # An edge along the epipolar lines slides along itself: its parallax is not seen (image_checks).
+        resolved &= ~along_epipolar_lines(cur, self.k_cv @ (-rot.T @ t), (cs.start, rs.start), cfg.checks)
         if sweep.verified is not None:   # on a roof's plane, only what matches that plane confirms
             resolved &= sweep.verified
         if cfg.overhang_check_m > 0:   # ground seen under a crown or eaves cannot confirm
