@@ -18,15 +18,13 @@ from edge_landing.runtime.fusion.motion import CameraPose, MotionConfig, MotionS
 sim = pytest.importorskip("edge_landing.sim", reason="the sim extra (embreex) renders the test worlds")
 from edge_landing.benchmarks.landing_truth import TruthConfig, check_target  # noqa: E402
 from edge_landing.benchmarks.lying_model import lying_prediction  # noqa: E402
-from edge_landing.sim.effects import EffectOverrides, sample_effects  # noqa: E402
-from edge_landing.sim.fields import flat_field  # noqa: E402
+from edge_landing.sim.fields import flat_field, quiet_effects  # noqa: E402
 from edge_landing.sim.world import Material  # noqa: E402
 
 INTR = Intrinsics.from_hfov(320, 240)
 MOUNT = Mount()
 FPS = 10.0
-EFFECTS = sample_effects(np.random.default_rng(0), EffectOverrides(haze_per_m=0.0, rain=0.0, motion_blur_px=0.0,
-                                                                    noise_sigma=0.01, exposure_ev=0.0))
+EFFECTS = quiet_effects()
 
 
 def _flat_world(box_rows: list, seed: int = 0, side=None, tint=(0.6, 0.2, 0.2), top=None, style=None):

@@ -70,8 +70,7 @@ def fly(cfg: FieldConfig, agl_m: float) -> dict[str, Any]:
     from edge_landing import sim
     from edge_landing.benchmarks.landing_truth import TruthConfig, check_target
     from edge_landing.benchmarks.lying_model import lying_prediction
-    from edge_landing.sim.effects import EffectOverrides, sample_effects
-    from edge_landing.sim.fields import flat_field
+    from edge_landing.sim.fields import flat_field, quiet_effects
     from edge_landing.sim.world import Material
 
     along, across, tall = cfg.box_m
@@ -81,8 +80,7 @@ def fly(cfg: FieldConfig, agl_m: float) -> dict[str, Any]:
     world = flat_field(rows, side=Material[cfg.material.upper()], tint=cfg.colour, top=Material[cfg.top.upper()])
     intr, mount = Intrinsics.from_hfov(cfg.width, cfg.height), Mount()
     renderer = sim.Renderer(world, intr, mount)
-    effects = sample_effects(np.random.default_rng(0), EffectOverrides(haze_per_m=0.0, rain=0.0, motion_blur_px=0.0,
-                                                                        noise_sigma=0.01, exposure_ev=0.0))
+    effects = quiet_effects()
     fusion = FusionConfig()
     fuser = LandingFuser(fusion, intr, mount)
     truth = TruthConfig(log="", clearance_m=fusion.required_clearance_m, sample_step_m=0.05)

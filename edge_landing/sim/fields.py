@@ -10,10 +10,11 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from .effects import EffectOverrides, Effects, sample_effects
 from .meshes import boxes
 from .world import WORLD_HALF_SIZE_M, GroundMap, Material, Style, Terrain, World, _finish
 
-__all__ = ["flat_field"]
+__all__ = ["flat_field", "quiet_effects"]
 
 
 def flat_field(box_rows: Sequence[Sequence[float]], seed: int = 0, side: Material = Material.CAR_PAINT,
@@ -28,3 +29,10 @@ def flat_field(box_rows: Sequence[Sequence[float]], seed: int = 0, side: Materia
     part = boxes(b[:, 0], b[:, 1], b[:, 2], b[:, 3], 0.0, 0.3, -b[:, 4], side, np.array(tint, np.float32),
                  top_material=top)
     return _finish(style or Style.SUBURBAN, seed, part, terrain, GroundMap(Material.GRASS), np.zeros((0, 2)))
+
+
+def quiet_effects() -> Effects:
+    """The camera effects a hand-built field is seen with: no haze, rain, blur or exposure change; sensor noise
+    0.01 (the question asked is geometry's, not the weather's)."""
+    return sample_effects(np.random.default_rng(0), EffectOverrides(haze_per_m=0.0, rain=0.0, motion_blur_px=0.0,
+                                                                    noise_sigma=0.01, exposure_ev=0.0))

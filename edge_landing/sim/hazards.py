@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 
@@ -55,12 +56,20 @@ def hazard_part(rng: np.random.Generator, terrain: Terrain, spots: np.ndarray,
                 config: HazardConfig = HazardConfig()) -> Part:
     """Meshes of the hazards around ``spots`` (N×2 north, east), standing on ``terrain``."""
     col = Collector(rng, terrain)
-    for n0, e0 in np.asarray(spots, np.float64).reshape(-1, 2):
-        for _ in range(config.per_spot):
-            r = math.sqrt(rng.uniform(config.keep_clear_m ** 2, config.ring_m ** 2))
-            a = rng.uniform(0.0, 2.0 * math.pi)
-            _one(col, rng, n0 + r * math.cos(a), e0 + r * math.sin(a), a)
+    for n, e, bearing in _around(rng, spots, config.per_spot, config.keep_clear_m, config.ring_m):
+        _one(col, rng, n, e, bearing)
     return col.build()
+
+
+def _around(rng: np.random.Generator, spots: np.ndarray, per_spot: int, keep_clear_m: float,
+            ring_m: float) -> Iterator[tuple[float, float, float]]:
+    """(north, east, bearing from the spot) of ``per_spot`` places per spot, uniform over the ring between
+    ``keep_clear_m`` and ``ring_m``; drawn lazily, so what the caller draws for each place comes in between."""
+    for n0, e0 in np.asarray(spots, np.float64).reshape(-1, 2):
+        for _ in range(per_spot):
+            r = math.sqrt(rng.uniform(keep_clear_m ** 2, ring_m ** 2))
+            a = rng.uniform(0.0, 2.0 * math.pi)
+            yield n0 + r * math.cos(a), e0 + r * math.sin(a), a
 
 
 def _one(col: Collector, rng: np.random.Generator, n: float, e: float, bearing: float) -> None:
@@ -90,10 +99,7 @@ def people_part(rng: np.random.Generator, terrain: Terrain, spots: np.ndarray,
     """People standing around ``spots`` (N×2 north, east) on ``terrain``: one box each, in clothing colours."""
     col = Collector(rng, terrain)
     hx, hy = config.half_width_m
-    for n0, e0 in np.asarray(spots, np.float64).reshape(-1, 2):
-        for _ in range(config.per_spot):
-            r = math.sqrt(rng.uniform(config.keep_clear_m ** 2, config.ring_m ** 2))
-            a = rng.uniform(0.0, 2.0 * math.pi)
-            col.box(n0 + r * math.cos(a), e0 + r * math.sin(a), hx, hy, rng.uniform(0.0, math.pi),
-                    rng.uniform(*config.height_m), Material.CLUTTER, CLOTHING_TINTS[rng.integers(len(CLOTHING_TINTS))])
+    for n, e, _ in _around(rng, spots, config.per_spot, config.keep_clear_m, config.ring_m):
+        col.box(n, e, hx, hy, rng.uniform(0.0, math.pi), rng.uniform(*config.height_m), Material.CLUTTER,
+                CLOTHING_TINTS[rng.integers(len(CLOTHING_TINTS))])
     return col.build()

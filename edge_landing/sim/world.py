@@ -231,7 +231,8 @@ def build_world(style: Style | str, seed: int, hazards: bool = False, people: bo
     from .towns import suburban_layout, urban_layout
 
     style = style if isinstance(style, Style) else Style.from_string(style)
-    rng = np.random.default_rng([int(seed), 0x5EED, {Style.SUBURBAN: 0, Style.URBAN: 1}.get(style, 2)])
+    style_key = {Style.SUBURBAN: 0, Style.URBAN: 1}.get(style, 2)
+    rng = np.random.default_rng([int(seed), 0x5EED, style_key])
     if style is Style.RURAL:
         from .rural import rural_layout
 
@@ -254,6 +255,6 @@ def build_world(style: Style | str, seed: int, hazards: bool = False, people: bo
     if people:
         from .hazards import people_part
 
-        people_rng = np.random.default_rng([int(seed), 0x9E0, {Style.SUBURBAN: 0, Style.URBAN: 1}.get(style, 2)])
+        people_rng = np.random.default_rng([int(seed), 0x9E0, style_key])
         part = Part.concat([part, people_part(people_rng, terrain, spots)])
     return _finish(style, int(seed), part, terrain, ground, spots)
