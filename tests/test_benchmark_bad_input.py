@@ -97,6 +97,7 @@ def test_lying_model_keeps_an_existing_trace_when_the_json_cannot_be_written(cap
 @pytest.mark.parametrize("argv,expected", [
     (["--clearance", "0"], "--clearance"), (["--clearance", "-1"], "--clearance"),
     (["--clearance", "nan"], "--clearance must be a finite number"), (["--clearance", "inf"], "got inf"),
+    (["--step", "0"], "--step"), (["--step", "2"], "--step"), (["--step", "nan"], "--step"),
     (["--seed", "-1"], "--seed"), (["--style", "bogus"], "--style"),
 ])
 def test_landing_truth(capsys, tmp_path, argv, expected):

@@ -59,17 +59,18 @@ def test_the_world_comes_from_the_log_header_and_flags_override_it(world, tmp_pa
     n, e = open_spot(world)               # open ground in suburban seed 0
     log = write_log(tmp_path / "sub.jsonl", run_header("suburban", 0), (n, e))
     result = evaluate(TruthConfig(log=str(log)))
-    assert result["world"] == {"style": "suburban", "seed": 0, "hazards": False, "from": "the log header"}
+    assert result["world"] == {"style": "suburban", "seed": 0, "hazards": False, "people": False,
+                               "from": "the log header"}
     assert (result["frames"], result["targets"], result["safe"]) == (1, 1, 1)   # the header is not a decision
     # the same spot judged in a log that says urban seed 3: another world, so it is judged there
     urban = write_log(tmp_path / "urban.jsonl", run_header("urban", 3), (n, e))
     assert evaluate(TruthConfig(log=str(urban)))["world"] == {"style": "urban", "seed": 3, "hazards": False,
-                                                              "from": "the log header"}
+                                                              "people": False, "from": "the log header"}
     # explicit flags win over the header
     assert main([str(urban), "--style", "suburban", "--seed", "0"]) == 0
     assert "1/1 targets" in capsys.readouterr().out
     over = evaluate(TruthConfig(log=str(urban), style="suburban", seed=0))
-    assert over["world"] == {"style": "suburban", "seed": 0, "hazards": False,
+    assert over["world"] == {"style": "suburban", "seed": 0, "hazards": False, "people": False,
                              "from": "--style/--seed and the log header"} and over["safe"] == 1
 
 
@@ -98,12 +99,13 @@ def test_a_replayed_edge_sim_video_is_judged_in_the_world_its_scene_json_names(w
     video = scene / "flight.mp4"
     video.write_bytes(b"")
     log = write_log(tmp_path / "replay.jsonl", run_header(None, None, str(video), "file"), (n, e))
-    for hazards in (False, True):
-        (scene / "scene.json").write_text(json.dumps({"generator": {"name": "edge-sim", "style": "suburban", "seed": 0,
-                                                                    "hazards": hazards}}))
+    for hazards, people in ((False, False), (True, False), (True, True)):
+        generator = {"name": "edge-sim", "style": "suburban", "seed": 0, "hazards": hazards, "people": people}
+        (scene / "scene.json").write_text(json.dumps({"generator": generator}))
         assert evaluate(TruthConfig(log=str(log)))["world"] == {"style": "suburban", "seed": 0, "hazards": hazards,
-                                                                "from": str(scene / "scene.json")}
-    assert main([str(log)]) == 0 and "seed 0 with hazards (from" in capsys.readouterr().out
+                                                                "people": people, "from": str(scene / "scene.json")}
+    assert main([str(log)]) == 0 and "seed 0 with hazards and people (from" in capsys.readouterr().out
+    assert main([str(log), "--no-people"]) == 0 and "seed 0 with hazards (from" in capsys.readouterr().out
     (scene / "scene.json").write_text(json.dumps({"generator": {"name": "edge-sim", "style": "suburban", "seed": 0}}))
     assert main([str(log)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -148,3 +150,15 @@ def test_level_water_is_no_landing_spot_but_level_soil_beside_it_is():
     verdicts = [check_target(rural, *p, cfg) for p in _inside(rural, Material.SOIL)[::50]]
     assert any(ok for ok, _ in verdicts), verdicts     # not vacuous: dry level ground still passes
     assert all(why != "water inside the disc" for _, why in verdicts)
+
+
+def test_a_post_narrower_than_a_quarter_metre_cannot_fall_between_the_rays():
+    """A 0.12 m post standing between the rays of a 0.25 m grid (1.1 m from the target, between rays at 1.0
+    and 1.25 m) is missed at that spacing and found at the default 5 cm one."""
+    from edge_landing.sim.fields import flat_field
+
+    field = flat_field([(10.0, 1.125, 0.06, 0.06, 1.5)])          # north, east, half sizes, height
+    assert check_target(field, 10.0, 0.0, TruthConfig(log="", clearance_m=2.0, sample_step_m=0.25)) == (True, "ok")
+    ok, why = check_target(field, 10.0, 0.0, TruthConfig(log="", clearance_m=2.0))
+    assert not ok and ("step" in why or "tilted" in why), why
+    assert check_target(field, 10.0, -6.0, TruthConfig(log="", clearance_m=2.0)) == (True, "ok")   # open grass

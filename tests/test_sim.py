@@ -1,6 +1,7 @@
 """edge-sim: geometric truth of the rendered scenes, determinism, flight video, live camera and CLI errors."""
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from edge_landing.runtime.core.camera import (  # noqa: E402
     up_in_camera,
 )
 from edge_landing.runtime.core.geometry import hvo_from_normals, normals_from_depth  # noqa: E402
+from edge_landing.sim.cli import config_from_args  # noqa: E402
 from edge_landing.sim.cli import main as sim_main  # noqa: E402
 from edge_landing.sim.world import Material  # noqa: E402
 
@@ -287,3 +289,16 @@ def test_effect_overrides_fix_values_and_the_rest_stay_seeded():
     assert len({d.sun_azimuth_rad for d in draws}) == 20
     assert sim.sample_effects(np.random.default_rng(3)) == sim.sample_effects(np.random.default_rng(3))
     assert all(15.0 <= math.degrees(d.sun_elevation_rad) <= 75.0 for d in draws)
+
+
+def test_people_are_a_recorded_choice_of_the_scene(tmp_path):
+    """edge-sim --people renders the people of lying_model --people and says so in scene.json, where
+    landing_truth reads which world to judge in."""
+    args = ["--frames", "1", "--seed", str(SEED), "--width", str(W), "--height", str(H), "--hazards"]
+    gens = {}
+    for people in (False, True):
+        cfg, _ = config_from_args([str(tmp_path / str(people)), *args, *(["--people"] if people else [])])
+        assert cfg.people is people
+        gens[people] = json.loads((sim.generate(cfg, progress=False) / "scene.json").read_text())["generator"]
+        assert gens[people]["people"] is people and gens[people]["hazards"] is True
+    assert gens[True]["world"]["triangles"] > gens[False]["world"]["triangles"]

@@ -1,7 +1,8 @@
 """Are edge-run's landing targets really safe? Checks a decision log against the synthetic world's geometry.
 
 For every target in a ``--log targets.jsonl`` of ``edge-run --camera sim[:STYLE][:SEED]``, vertical rays are
-cast over the disc of the requested clearance radius around the target's local NED position. The target
+cast every 5 cm (``--step``) over the disc of the requested clearance radius around the target's local NED
+position. The target
 counts as safe when every ray hits a horizontal surface (normal within ``horizontal_max_deg`` of up,
 ARCHITECTURE.md §4), all hits lie within ``max_step_m`` of each other in height (no kerb, car or wall inside),
 and none is water (level and "horizontal" by its normals, but no place to land).
@@ -9,7 +10,7 @@ and none is water (level and "horizontal" by its normals, but no place to land).
 The world (style, seed) comes from the log's first line, the ``{"run": {...}}`` header edge-run writes
 (``sim_style``, ``sim_seed``; a sim camera's world has no hazards), or, for an ``edge-sim --flight`` video
 replayed with its poses or its telemetry log, from the ``scene.json`` beside the video (style, seed and
-whether hazards were rendered); ``--style``/``--seed``/``--hazards`` override either. A ``--camera
+whether hazards and people were rendered); ``--style``/``--seed``/``--hazards`` override either. A ``--camera
 sim-follow`` log's targets are in the autopilot's local NED: its home's place in the world
 (``sim.follow.place_home``) is added. A log that names no world and no flags is refused: judging against the
 wrong world gives a confident, wrong figure.
@@ -37,8 +38,9 @@ class TruthConfig:
     style: Optional[str] = None   # the world: None = from the log's run header (or the scene beside its video)
     seed: Optional[int] = None
     hazards: Optional[bool] = None   # sim.hazards in the world (edge-sim --hazards); None = from the same place
+    people: Optional[bool] = None    # people around the spots (edge-sim --people); None = from the scene, else none
     clearance_m: float = 2.0      # the vehicle radius + margin edge-run was given (defaults 1 + 1)
-    sample_step_m: float = 0.25
+    sample_step_m: float = 0.05   # rays every 5 cm: a 0.2 m post or a 0.24 m wall cannot fall between two
     horizontal_max_deg: float = 10.0
     max_step_m: float = 0.3
 
@@ -105,9 +107,9 @@ def scene_beside(header: Optional[dict[str, Any]]) -> tuple[dict[str, Any], str]
     return (generator, str(path)) if isinstance(generator, dict) and generator.get("name") == "edge-sim" else ({}, "")
 
 
-def world_of(cfg: TruthConfig, header: Optional[dict[str, Any]]) -> tuple[str, int, bool, str]:
-    """(style, seed, hazards, where they came from): the flags where given, the rest from the log's run header
-    or from the edge-sim scene.json beside its video."""
+def world_of(cfg: TruthConfig, header: Optional[dict[str, Any]]) -> tuple[str, int, bool, bool, str]:
+    """(style, seed, hazards, people, where they came from): the flags where given, the rest from the log's run
+    header or from the edge-sim scene.json beside its video (a scene written before ``--people`` has none)."""
     run: dict[str, Any] = header or {}
     scene, scene_path = scene_beside(header)
     sim_camera = run.get("sim_style") is not None
@@ -128,10 +130,11 @@ def world_of(cfg: TruthConfig, header: Optional[dict[str, Any]]) -> tuple[str, i
             raise InputError(f"{scene_path} does not say whether hazards were rendered (written before it did); "
                              f"give --hazards or --no-hazards")
         hazards = bool(scene.get("hazards", False)) if not sim_camera else False
+    people = cfg.people if cfg.people is not None else bool(scene.get("people", False)) and not sim_camera
     given = [f for f, v in (("--style", cfg.style), ("--seed", cfg.seed), ("--hazards", cfg.hazards)) if v is not None]
     where = f"{scene_path}" if scene and not sim_camera else "the log header"
     source = ("/".join(given) + (f" and {where}" if len(given) < 3 else "")) if given else where
-    return str(style), seed, bool(hazards), source
+    return str(style), seed, bool(hazards), bool(people), source
 
 
 def evaluate(cfg: TruthConfig) -> dict:
@@ -140,9 +143,9 @@ def evaluate(cfg: TruthConfig) -> dict:
     header, records = read_log(cfg.log)
     if not records:
         raise InputError(f"{cfg.log} holds no decisions (expected the JSON lines of edge-run --log)")
-    style, seed, hazards, source = world_of(cfg, header)
+    style, seed, hazards, people, source = world_of(cfg, header)
     targets = [r for r in records if r.get("valid") and r.get("ned_m")]
-    world = sim.build_world(style, seed, hazards=hazards)
+    world = sim.build_world(style, seed, hazards=hazards, people=people)
     # sim-follow: targets are in the autopilot's local NED, whose origin (home) sim.follow placed in the world
     offset = np.zeros(3)
     if (header or {}).get("source_kind") == "sim-follow":
@@ -157,7 +160,8 @@ def evaluate(cfg: TruthConfig) -> dict:
     safe = len(targets) - len(failures)
     return {"frames": len(records), "targets": len(targets), "safe": safe,
             "safe_share": safe / len(targets) if targets else math.nan, "failures": failures,
-            "world": {"style": style, "seed": seed, "hazards": hazards, "from": source}, "config": cfg.__dict__}
+            "world": {"style": style, "seed": seed, "hazards": hazards, "people": people, "from": source},
+            "config": cfg.__dict__}
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
@@ -168,7 +172,11 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--seed", type=int, help="sim world seed (default: the log header's sim_seed)")
     p.add_argument("--hazards", action=argparse.BooleanOptionalAction, default=None, help="whether the world has "
                    "edge-sim's hazards (default: the scene.json beside the log's video says; a sim camera's has none)")
+    p.add_argument("--people", action=argparse.BooleanOptionalAction, default=None, help="whether it has edge-sim's "
+                   "people (default: as the scene.json says; none where it does not say)")
     p.add_argument("--clearance", type=float, default=2.0, help="requested clearance radius, metres")
+    p.add_argument("--step", type=float, default=TruthConfig.sample_step_m, help="spacing of the vertical rays "
+                   "over the disc, metres (default 0.05: nothing wider than that falls between two)")
     a = p.parse_args(argv)
     if a.seed is not None:
         check_seed("--seed", a.seed)
@@ -177,11 +185,14 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
 
         check_choice("--style", Style.from_string, a.style)
     check_number("--clearance", a.clearance, 0.0, 50.0, lo_open=True, unit="metres")
-    result = evaluate(TruthConfig(a.log, a.style, a.seed, a.hazards, a.clearance))
+    check_number("--step", a.step, 0.0, 1.0, lo_open=True, unit="metres")
+    result = evaluate(TruthConfig(a.log, a.style, a.seed, a.hazards, a.people, a.clearance, sample_step_m=a.step))
     w = result["world"]
     print(f"{result['safe']}/{result['targets']} targets on ground-truth horizontal, level, dry ground with "
-          f"{a.clearance:.1f} m clearance ({100 * result['safe_share']:.1f} %); {result['frames']} frames; "
-          f"world {w['style']} seed {w['seed']}{' with hazards' if w['hazards'] else ''} (from {w['from']})")
+          f"{a.clearance:.1f} m clearance, rays every {a.step:.2f} m ({100 * result['safe_share']:.1f} %); "
+          f"{result['frames']} frames; "
+          f"world {w['style']} seed {w['seed']}{' with hazards' if w['hazards'] else ''}"
+          f"{' and people' if w['people'] else ''} (from {w['from']})")
     for f in result["failures"][:10]:
         print(f"  frame {f['frame']}: {f['why']} at NED {[round(v, 1) for v in f['ned_m']]}")
     return 0

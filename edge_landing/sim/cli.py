@@ -45,6 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "(clear air, no rain, blur or noise, exposure 0); the sun stays random unless given")
     p.add_argument("--hazards", action="store_true", help="cars, bushes, trees, low walls, poles and clutter "
                    "around the open landing spots (sim/hazards.py)")
+    p.add_argument("--people", action="store_true", help="people standing around the open landing spots, 6 per "
+                   "spot within 20 m (sim/hazards.py; recorded in scene.json for landing_truth)")
     p.add_argument("--flight", action="store_true", help="render one landing flight (approach, hover, descent) "
                    "and flight.mp4 instead of random views")
     p.add_argument("--fps", type=float, default=10.0, help="frame rate for frame times and the video (default 10)")
@@ -92,7 +94,7 @@ def config_from_args(argv: Optional[Sequence[str]]) -> tuple[SimConfig, bool]:
         hfov_deg = scene_hfov_deg(args.seed) if args.randomise else 90.0
     return SimConfig(out=args.out, frames=args.frames, style=Style.from_string(args.style), seed=args.seed,
                      width=args.width, height=args.height, hfov_deg=hfov_deg, effects=_overrides(args),
-                     randomise=args.randomise, hazards=args.hazards,
+                     randomise=args.randomise, hazards=args.hazards, people=args.people,
                      flight=args.flight, fps=args.fps, preview=args.preview, write_normals=not args.no_normals,
                      shadow_stride=args.shadow_stride, overwrite=args.overwrite), args.no_progress
 

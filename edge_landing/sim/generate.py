@@ -52,6 +52,7 @@ class SimConfig:
     overwrite: bool = False
     randomise: bool = False      # sim/randomise.py + sim/appearance.py: camera, palette and look draws
     hazards: bool = False       # sim.hazards around the landing spots
+    people: bool = False        # people standing around them (sim.hazards.people_part)
 
     def __post_init__(self):
         if self.frames < 1:
@@ -137,7 +138,7 @@ def generator_record(config: SimConfig, world, per_frame: list[dict]) -> dict:
     """Everything needed to regenerate the scene, for scene.json's ``generator``."""
     return {
         "name": "edge-sim", "version": SIM_VERSION, "style": str(config.style), "seed": int(config.seed),
-        "hazards": bool(config.hazards),
+        "hazards": bool(config.hazards), "people": bool(config.people),
         "frames": int(config.frames), "mode": "flight" if config.flight else "views", "fps": float(config.fps),
         "width": config.width, "height": config.height, "hfov_deg": float(config.hfov_deg),
         "elevation_range_m": list(AGL_RANGE_M), "agl": "distance straight down to the first surface",
@@ -167,7 +168,7 @@ def generate(config: SimConfig, progress: bool = True) -> Path:
     thresholds = HvoThresholds()
     meta = SceneMeta(intrinsics=config.intrinsics, mount=Mount(), hvo_thresholds=thresholds)
     writer = SceneWriter(out, meta)            # fails fast on an unwritable folder, before the slow work
-    world = build_world(config.style, config.seed, config.hazards)
+    world = build_world(config.style, config.seed, config.hazards, config.people)
     renderer = Renderer(world, config.intrinsics, meta.mount, thresholds, config.shadow_stride)
     if config.randomise:
         from .appearance import sample_palette
@@ -226,7 +227,7 @@ def render_sample(config: SimConfig, frame: int, sample: VehicleSample,
                   renderer: Optional[Renderer] = None) -> Rendering:
     """Render one vehicle sample with the configuration's effects (used by the live camera and tests)."""
     if renderer is None:
-        renderer = Renderer(build_world(config.style, config.seed, config.hazards), config.intrinsics, Mount(), HvoThresholds(),
-                            config.shadow_stride)
+        world = build_world(config.style, config.seed, config.hazards, config.people)
+        renderer = Renderer(world, config.intrinsics, Mount(), HvoThresholds(), config.shadow_stride)
     return renderer.render(sample.position_ned_m, sample.attitude, frame_effects(config, frame),
                            frame_rng(config.seed, frame, _PURPOSE_SENSOR))

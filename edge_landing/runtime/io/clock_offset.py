@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Deque, Optional
 from edge_landing.runtime.io.timesync import RoundTrips
 
 if TYPE_CHECKING:
-    from edge_landing.runtime.io.telemetry import TelemetryConfig
+    from edge_landing.runtime.io.telemetry_config import TelemetryConfig
 
 
 class ClockOffset:

@@ -1,0 +1,51 @@
+"""Settings of the telemetry buffer (``telemetry.py``): matching, clock and plausibility (seconds, metres, radians).
+
+Each limit's reason is beside it; ARCHITECTURE.md §12 gives the trust rules they serve.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from edge_landing.runtime.io.timesync import TimeSyncConfig
+
+__all__ = ["TelemetryConfig"]
+
+
+@dataclass(frozen=True)
+class TelemetryConfig:
+    """Matching, clock and plausibility settings (seconds, metres, radians)."""
+
+    window_s: float = 0.25      # how far from the capture time a sample may be and still count
+    history_s: float = 5.0      # how much history to keep
+    reboot_jump_s: float = 2.0  # a remote clock that goes back this much (for clock_window_s) means a reboot
+    fresh_s: float = 0.4        # the newest attitude must have arrived at most this long ago
+    clock_window_s: float = 2.0  # the clock offset is re-estimated from the fastest sample of each window
+    # How fast the autopilot's clock may fall behind this one (seconds per second): a window's fastest sample may
+    # raise the offset by no more than this × the window. ArduPilot's JitterCorrection also moves a sample that is
+    # more than 500 ms late forward to 500 ms, and its offset with it; that made telemetry delivered 0.7-1.7 s
+    # late, in bursts, look fresh (99 targets sent from it in 3 s). A crystal drifts 1e-4; 0.1 leaves room for a
+    # simulator's clock running at 90 % of real time (and the 5 % slow clock of tests/test_trust.py).
+    max_drift: float = 0.1
+    # A sample stamped further than this in the future of the offset is dropped (unless the clock stays ahead for
+    # clock_window_s): adopted, one such glitch put every later sample that far in the past, beyond window_s, and
+    # telemetry was lost for 2.7 s (0.5 s: one sample 0.45 s ahead). Up to this much it only shifts the matching.
+    max_future_s: float = 0.15
+    clock_memory_windows: int = 10  # "from the future" is judged against the fastest sample of this many windows
+    max_tilt_rad: float = math.radians(60.0)  # |roll|, |pitch| beyond this are not a multicopter in flight
+    max_agl_m: float = 1000.0   # relative altitude above this is not believed
+    max_position_m: float = 1.0e5
+    max_samples: int = 4096     # per quantity, whatever the rate (a flood of messages cannot grow memory)
+    # A local position that moves faster than this (and by more than max(min_jump_m, speed × interval)) did not
+    # fly there: the autopilot's frame moved (an EKF reset, a GPS glitch). The earlier positions are dropped and
+    # a new position epoch starts: NED evidence and a committed spot from before mean nothing in the new frame.
+    max_speed_mps: float = 40.0
+    min_jump_m: float = 5.0
+    # A heading that turns faster than this (and by more than min_yaw_jump_rad) was reset, not flown (an EKF yaw
+    # reset): everything placed in NED with the old heading is rotated about the vehicle, so a new epoch starts.
+    max_yaw_rate_rad_s: float = 2.0 * math.pi
+    min_yaw_jump_rad: float = math.radians(15.0)
+    # The autopilot's own estimator status (EKF_STATUS_REPORT, ESTIMATOR_STATUS) counts for this long after it
+    # arrived; without one the estimate is taken as good (autopilots that do not send it).
+    estimator_status_s: float = 3.0
+    timesync: TimeSyncConfig = TimeSyncConfig()
