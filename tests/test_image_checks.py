@@ -83,7 +83,8 @@ def test_texture_that_is_only_noise_does_not_count_beyond_it():
 def test_an_edge_along_the_epipolar_lines_cannot_confirm_one_across_them_can():
     """A bright 2-pixel line (a low wall seen along the flight) on noisy texture: when the epipolar lines run
     along it (the epipole far above the window, as in forward flight) its pixels and two either side are flagged;
-    when they cross it (the epipole to the side) nothing is; plain texture is hardly ever flagged."""
+    when they cross it (the epipole to the side) nothing is; plain texture is hardly ever flagged; a line in
+    only one image of the pair is not flagged."""
     grey = _texture(80, 100, seed=3).astype(np.float32) * 0.25 + 96
     grey[:, 49:51] = 230
     grey = grey.astype(np.uint8)
@@ -95,6 +96,13 @@ def test_an_edge_along_the_epipolar_lines_cannot_confirm_one_across_them_can():
     # The window's offset in the frame counts: the same epipole seen from a window far to its right is beside.
     assert not along_epipolar_lines(grey, np.array([50.0, 40.0, 1.0]), (-2000, 0), CFG)[10:70, 45:55].any()
     assert not along_epipolar_lines(grey, above, (0, 0), replace(CFG, epipolar_edge_ratio=0.0)).any()
+    # With the pair's reference: a wall is in both images (slid along itself); a rain streak, new in every frame,
+    # in one only, and is no reason to refuse.
+    ref = grey.copy()
+    assert along_epipolar_lines(grey, above, (0, 0), CFG, ref)[10:70, 47:53].all()
+    ground = (_texture(80, 100, seed=4).astype(np.float32) * 0.25 + 96).astype(np.uint8)
+    assert not along_epipolar_lines(grey, above, (0, 0), CFG, ground)[10:70, 45:55].any()
+    assert not along_epipolar_lines(ground, above, (0, 0), CFG, grey)[10:70, 45:55].any()
 
 
 def test_predicted_motion_is_the_homography_shift():

@@ -26,7 +26,10 @@ Motion geometry reads "no parallax" as "level ground". Two inputs give no parall
   (sent targets beside it on a generated flight; benchmarks/narrow_obstacles.py). A pixel within
   ``epipolar_edge_grow_px`` of one whose neighbourhood (``epipolar_box_px``, long enough that grass texture
   averages out) has less than ``epipolar_edge_ratio`` of its gradient energy along the epipolar line, and a
-  clear edge across it, may not confirm in that pair; a pair with another baseline direction can.
+  clear edge across it, may not confirm in that pair; a pair with another baseline direction can. The edges are
+  looked for in the darker of the two images at each pixel (the reference warped onto the current one): a wall
+  is in both, where it slides along itself; a rain streak, bright, new in every frame and itself a line along
+  the epipolar lines of forward flight, is in one only, and the darker image does not show it.
 - **Images that did not move as the vehicle did.** A frozen feed (the camera or its driver repeating the last
   image) or telemetry that does not belong to the frames: the poses predict that the ground moved by a pixel or
   more, yet the reference image matches the current one better where it was than where the poses put it.
@@ -36,6 +39,7 @@ Pure numpy/OpenCV, no I/O.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -148,13 +152,15 @@ def texture_masks(grey: np.ndarray, config: ImageCheckConfig) -> tuple[np.ndarra
 
 
 def along_epipolar_lines(grey: np.ndarray, epipole: np.ndarray, origin_xy: tuple[int, int],
-                         config: ImageCheckConfig) -> np.ndarray:
+                         config: ImageCheckConfig, ref: Optional[np.ndarray] = None) -> np.ndarray:
     """H×W bool: pixels of the window ``grey`` at or near an edge that runs along the pair's epipolar lines (the
     module docstring). ``epipole``: the reference camera's centre in the current frame, homogeneous pixel
-    coordinates (3,; z = 0 when it lies at infinity); ``origin_xy``: the window's top-left pixel in the frame."""
+    coordinates (3,; z = 0 when it lies at infinity); ``origin_xy``: the window's top-left pixel in the frame.
+    ``ref``: the pair's reference warped onto the window; given, edges are looked for in the darker of the two
+    at each pixel (bright rain streaks in one image only do not count)."""
     if config.epipolar_edge_ratio <= 0:
         return np.zeros(grey.shape, dtype=bool)
-    a, b, c = _structure(grey, config.epipolar_box_px)
+    a, b, c = _structure(grey if ref is None else np.minimum(grey, ref), config.epipolar_box_px)
     h, w = grey.shape
     x = np.arange(w, dtype=np.float32) + np.float32(origin_xy[0])
     y = np.arange(h, dtype=np.float32) + np.float32(origin_xy[1])
