@@ -103,6 +103,12 @@ def test_an_edge_along_the_epipolar_lines_cannot_confirm_one_across_them_can():
     ground = (_texture(80, 100, seed=4).astype(np.float32) * 0.25 + 96).astype(np.uint8)
     assert not along_epipolar_lines(grey, above, (0, 0), CFG, ground)[10:70, 45:55].any()
     assert not along_epipolar_lines(ground, above, (0, 0), CFG, grey)[10:70, 45:55].any()
+    # Beside pixels the pair measured standing out (a crown's or a car's side), the edge is that obstacle's
+    # outline: the obstacle is marked, and the ground beyond it is not refused for the edge.
+    standing = np.zeros(grey.shape, bool)
+    standing[:, 53:57] = True
+    assert along[10:70, 51:58].all()
+    assert not along_epipolar_lines(grey, above, (0, 0), CFG, None, standing)[10:70, 51:70].any()
 
 
 def test_predicted_motion_is_the_homography_shift():
@@ -139,6 +145,8 @@ def test_config_is_checked():
         ImageCheckConfig(epipolar_edge_ratio=1.0)
     with pytest.raises(InputError, match="epipolar_box_px"):
         ImageCheckConfig(epipolar_box_px=0)
+    with pytest.raises(InputError, match="outline_min_m"):
+        ImageCheckConfig(outline_min_m=0.0)
 
 
 pytest.importorskip("embreex")

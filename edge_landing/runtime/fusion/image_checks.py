@@ -29,7 +29,10 @@ Motion geometry reads "no parallax" as "level ground". Two inputs give no parall
   clear edge across it, may not confirm in that pair; a pair with another baseline direction can. The edges are
   looked for in the darker of the two images at each pixel (the reference warped onto the current one): a wall
   is in both, where it slides along itself; a rain streak, bright, new in every frame and itself a line along
-  the epipolar lines of forward flight, is in one only, and the darker image does not show it.
+  the epipolar lines of forward flight, is in one only, and the darker image does not show it. An edge within
+  ``epipolar_box_px`` // 2 of a pixel the same pair measured standing out (``outline_min_m`` and 3σ) is that
+  obstacle's outline (a crown's side, a car's): the obstacle is marked and grown, and the ground beyond it may
+  confirm as before the check.
 - **Images that did not move as the vehicle did.** A frozen feed (the camera or its driver repeating the last
   image) or telemetry that does not belong to the frames: the poses predict that the ground moved by a pixel or
   more, yet the reference image matches the current one better where it was than where the poses put it.
@@ -63,11 +66,13 @@ class ImageCheckConfig:
     epipolar_edge_ratio: float = 0.15   # gradient energy along the epipolar line below this share of that across
     epipolar_edge_floor: float = 10.0   # ... and that across at least this (grey levels² per pixel²): an edge
     epipolar_edge_grow_px: int = 2      # pixels this close to one may not confirm either (DIS's patch reach)
+    outline_min_m: float = 0.5          # an edge beside a pixel measured this high (and 3σ) is its outline
     min_predicted_motion_px: float = 1.0   # below this the two errors differ by noise only: not checked
     still_match_ratio: float = 0.5      # unwarped error below this share of the warped one: images did not move
 
     def __post_init__(self) -> None:
-        for name in ("min_texture_grey_px", "min_predicted_motion_px", "still_match_ratio", "noise_texture_ratio"):
+        for name in ("min_texture_grey_px", "min_predicted_motion_px", "still_match_ratio", "noise_texture_ratio",
+                     "outline_min_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"image check {name} must be > 0, got {getattr(self, name)}")
         if not 0 <= self.epipolar_edge_ratio < 1 or not self.epipolar_edge_floor >= 0 \
@@ -152,12 +157,14 @@ def texture_masks(grey: np.ndarray, config: ImageCheckConfig) -> tuple[np.ndarra
 
 
 def along_epipolar_lines(grey: np.ndarray, epipole: np.ndarray, origin_xy: tuple[int, int],
-                         config: ImageCheckConfig, ref: Optional[np.ndarray] = None) -> np.ndarray:
+                         config: ImageCheckConfig, ref: Optional[np.ndarray] = None,
+                         standing: Optional[np.ndarray] = None) -> np.ndarray:
     """H×W bool: pixels of the window ``grey`` at or near an edge that runs along the pair's epipolar lines (the
     module docstring). ``epipole``: the reference camera's centre in the current frame, homogeneous pixel
     coordinates (3,; z = 0 when it lies at infinity); ``origin_xy``: the window's top-left pixel in the frame.
     ``ref``: the pair's reference warped onto the window; given, edges are looked for in the darker of the two
-    at each pixel (bright rain streaks in one image only do not count)."""
+    at each pixel (bright rain streaks in one image only do not count). ``standing``: pixels the pair measured
+    standing out (``outline_min_m``); edges beside them are their outline, not flagged."""
     if config.epipolar_edge_ratio <= 0:
         return np.zeros(grey.shape, dtype=bool)
     a, b, c = _structure(grey if ref is None else np.minimum(grey, ref), config.epipolar_box_px)
@@ -173,6 +180,9 @@ def along_epipolar_lines(grey: np.ndarray, epipole: np.ndarray, origin_xy: tuple
     along = a * ux * ux + 2 * b * ux * uy + c * uy * uy   # gradient energy along the epipolar line ...
     across = a * uy * uy - 2 * b * ux * uy + c * ux * ux  # ... and across it (an edge along the line)
     edge = (along < np.float32(config.epipolar_edge_ratio) * across) & (across >= np.float32(config.epipolar_edge_floor))
+    if standing is not None and standing.any():
+        box = 2 * (config.epipolar_box_px // 2) + 1
+        edge &= ~cv2.dilate(standing.view(np.uint8), np.ones((box, box), np.uint8)).astype(bool)
     k = 2 * config.epipolar_edge_grow_px + 1
     out: np.ndarray = cv2.dilate(edge.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
     return out

@@ -366,7 +366,10 @@ class MotionStage:
         # wall's face still reads partly high; a blank image or a pond next to its bank reads level).
         resolved = (patch_px * rng / f <= cfg.max_patch_footprint_m) & tex & beyond_noise
         # An edge along the epipolar lines slides along itself: its parallax is not seen (image_checks).
-        resolved &= ~along_epipolar_lines(cur, self.k_cv @ (-rot.T @ t), (cs.start, rs.start), cfg.checks, wrp)
+        with np.errstate(invalid="ignore"):
+            standing = reliable & (np.abs(local) >= cfg.checks.outline_min_m) & (np.abs(local) >= cfg.detect_sigmas * sigma0)
+        resolved &= ~along_epipolar_lines(cur, self.k_cv @ (-rot.T @ t), (cs.start, rs.start), cfg.checks, wrp,
+                                          standing)
         if sweep.verified is not None:   # on a roof's plane, only what matches that plane confirms
             resolved &= sweep.verified
         if cfg.overhang_check_m > 0:   # ground seen under a crown or eaves cannot confirm
