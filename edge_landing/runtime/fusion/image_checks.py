@@ -66,7 +66,7 @@ class ImageCheckConfig:
     epipolar_edge_ratio: float = 0.15   # gradient energy along the epipolar line below this share of that across
     epipolar_edge_floor: float = 10.0   # ... and that across at least this (grey levels² per pixel²): an edge
     epipolar_edge_grow_px: int = 2      # pixels this close to one may not confirm either (DIS's patch reach)
-    outline_min_m: float = 0.5          # an edge beside a pixel measured this high (and 3σ) is its outline
+    outline_min_m: float = 1.0          # an edge beside a pixel measured this high (and 3σ) is its outline
     min_predicted_motion_px: float = 1.0   # below this the two errors differ by noise only: not checked
     still_match_ratio: float = 0.5      # unwarped error below this share of the warped one: images did not move
 
