@@ -2,16 +2,15 @@
 
 For every target in a ``--log targets.jsonl`` of ``edge-run --camera sim[:STYLE][:SEED]``, vertical rays are
 cast every 5 cm (``--step``) over the disc of the requested clearance radius around the target's local NED
-position. The target
-counts as safe when every ray hits a horizontal surface (normal within ``horizontal_max_deg`` of up,
-ARCHITECTURE.md §4), all hits lie within ``max_step_m`` of each other in height (no kerb, car or wall inside),
-and none is water (level and "horizontal" by its normals, but no place to land).
+position. The target counts as safe when every ray hits a horizontal surface (normal within
+``horizontal_max_deg`` of up, ARCHITECTURE.md §4), all hits lie within ``max_step_m`` of each other in height
+(no kerb, car or wall inside), and none is water (level and "horizontal" by its normals, but no place to land).
 
 The world (style, seed) comes from the log's first line, the ``{"run": {...}}`` header edge-run writes
 (``sim_style``, ``sim_seed``; a sim camera's world has no hazards), or, for an ``edge-sim --flight`` video
 replayed with its poses or its telemetry log, from the ``scene.json`` beside the video (style, seed and
-whether hazards and people were rendered); ``--style``/``--seed``/``--hazards`` override either. A ``--camera
-sim-follow`` log's targets are in the autopilot's local NED: its home's place in the world
+whether hazards and people were rendered); ``--style``/``--seed``/``--hazards``/``--people`` override either.
+A ``--camera sim-follow`` log's targets are in the autopilot's local NED: its home's place in the world
 (``sim.follow.place_home``) is added. A log that names no world and no flags is refused: judging against the
 wrong world gives a confident, wrong figure.
 
@@ -131,9 +130,10 @@ def world_of(cfg: TruthConfig, header: Optional[dict[str, Any]]) -> tuple[str, i
                              f"give --hazards or --no-hazards")
         hazards = bool(scene.get("hazards", False)) if not sim_camera else False
     people = cfg.people if cfg.people is not None else bool(scene.get("people", False)) and not sim_camera
-    given = [f for f, v in (("--style", cfg.style), ("--seed", cfg.seed), ("--hazards", cfg.hazards)) if v is not None]
+    flags = (("--style", cfg.style), ("--seed", cfg.seed), ("--hazards", cfg.hazards), ("--people", cfg.people))
+    given = [f for f, v in flags if v is not None]
     where = f"{scene_path}" if scene and not sim_camera else "the log header"
-    source = ("/".join(given) + (f" and {where}" if len(given) < 3 else "")) if given else where
+    source = ("/".join(given) + (f" and {where}" if len(given) < len(flags) else "")) if given else where
     return str(style), seed, bool(hazards), bool(people), source
 
 

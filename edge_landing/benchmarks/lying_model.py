@@ -11,7 +11,7 @@ from memory on frames without a fresh confirmation). Every sent target is judged
 against the world (benchmarks/landing_truth.check_target). Also: motion geometry alone, per cell, against
 the world's heights (recall of obstacles >= 1 m among cells it measured to <= 1 m, at 30-60 m AGL).
 
-``--people`` adds people standing around the landing spots (sim.hazards.people_part; not in edge-sim's worlds).
+``--people`` adds people standing around the landing spots (sim.hazards.people_part; edge-sim --people too).
 ``--no-position`` replays telemetry with attitude and height above ground but no position: geometry then runs
 on the image-only pose (fusion.image_motion); targets are judged where they point from the true pose.
 ``--pose-errors typical|harsh`` adds an autopilot's estimation errors to the telemetry fusion sees

@@ -83,7 +83,7 @@ def fly(cfg: FieldConfig, agl_m: float) -> dict[str, Any]:
     effects = quiet_effects()
     fusion = FusionConfig()
     fuser = LandingFuser(fusion, intr, mount)
-    truth = TruthConfig(log="", clearance_m=fusion.required_clearance_m, sample_step_m=0.05)
+    truth = TruthConfig(log="", clearance_m=fusion.required_clearance_m)
     rng = np.random.default_rng(cfg.seed)
     confirmed, unsafe, why = 0, 0, list[str]()
     for k in range(cfg.frames):
