@@ -82,6 +82,7 @@ def test_narrow_obstacles(capsys, files, argv, expected):
     (["--pose-errors", "bogus"], "--pose-errors"),
     (["--error-seed", "-3"], "--error-seed"),
     (["--geometry-timing", "later"], "--geometry-timing"),
+    (["--approach", "zigzag"], "--approach"),
 ])
 def test_lying_model(capsys, files, argv, expected):
     one_line_error(capsys, lying_model.main, [a.format(t=files) for a in argv], expected)

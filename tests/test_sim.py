@@ -220,6 +220,39 @@ def test_a_flight_too_short_for_a_multirotor_says_so(caplog):
     assert peak_speed_mps(usual) < 25.0 and len(caplog.records) == 1
 
 
+def test_an_arc_approach_turns_the_direction_of_flight_and_ends_where_the_straight_one_does(tmp_path):
+    """Same spot, hover and descent; the approach bends up to 25 m sideways with the camera turned to the spot,
+    so the direction of flight (and the pairs' epipolar lines) turns; the straight flight is the default."""
+    from edge_landing.sim.flight import ARC_OFFSET_M, peak_speed_mps
+    from edge_landing.sim.generate import vehicle_samples
+
+    world = sim.build_world(sim.Style.SUBURBAN, SEED)
+    straight = list(vehicle_samples(sim.SimConfig(out=Path("x"), frames=200, seed=SEED, flight=True), world))
+    arc = list(vehicle_samples(sim.SimConfig(out=Path("x"), frames=200, seed=SEED, flight=True,
+                                             approach=sim.Approach.ARC), world))
+    n_app = 80
+    for a, b in zip(straight[n_app:], arc[n_app:]):                  # hover and descent: the same poses
+        assert np.array_equal(a.position_ned_m, b.position_ned_m) and a.attitude == b.attitude
+    p_s = np.array([s.position_ned_m[:2] for s in straight[:n_app]])
+    p_a = np.array([s.position_ned_m[:2] for s in arc[:n_app]])
+    line = (p_s[-1] - p_s[0]) / np.linalg.norm(p_s[-1] - p_s[0])
+    side = np.abs((p_a - p_s) @ np.array([-line[1], line[0]]))
+    assert side.max() == pytest.approx(ARC_OFFSET_M, abs=0.5) and side[0] < 1e-6 and side[-1] < 1e-6
+    steps = np.diff(p_a, axis=0)
+    turn_deg = np.degrees(np.arctan2(steps[:, 1], steps[:, 0]) - math.atan2(line[1], line[0]))
+    assert turn_deg.max() > 25 and turn_deg.min() < -25                # from one side of the line to the other
+    spot = straight[-1].position_ned_m[:2]                              # the descent ends above the spot's line
+    for s in arc[:n_app:10]:                                            # the camera looks towards the spot
+        to_spot = math.atan2(*(spot - s.position_ned_m[:2])[::-1])
+        off = math.remainder(s.attitude.yaw_rad - to_spot, 2 * math.pi)
+        assert abs(math.degrees(off)) < 3.0
+    assert peak_speed_mps(arc) < 25.0
+    gen = json.loads((sim.generate(sim.SimConfig(out=tmp_path / "a", frames=2, seed=SEED, width=32, height=24,
+                                                 flight=True, approach=sim.Approach.ARC), progress=False)
+                      / "scene.json").read_text())["generator"]
+    assert gen["approach"] == "arc"
+
+
 def test_sim_camera_reads_frames_with_pose_and_state():
     cam = sim.SimCamera(style="suburban", seed=SEED, width=64, height=48, fps=5.0, flight_frames=4)
     times = []
@@ -238,6 +271,8 @@ def test_sim_camera_reads_frames_with_pose_and_state():
     (["--style", "desert"], "unsupported world style 'desert'"),
     (["--rain", "2"], "--rain must be between 0 and 1"),
     (["--frames", "two"], "invalid int value"),
+    (["--approach", "zigzag"], "--approach: unsupported approach 'zigzag'"),
+    (["--approach", "arc"], "--approach arc needs --flight"),
 ])
 def test_bad_arguments_give_one_clear_line(tmp_path, capsys, args, needle):
     code = sim_main([str(tmp_path / "out"), *args, "--quiet"])

@@ -12,6 +12,7 @@ against the world (benchmarks/landing_truth.check_target). Also: motion geometry
 the world's heights (recall of obstacles >= 1 m among cells it measured to <= 1 m, at 30-60 m AGL).
 
 ``--people`` adds people standing around the landing spots (sim.hazards.people_part; edge-sim --people too).
+``--approach arc`` bends the approach sideways so that the direction of flight turns (sim.flight.Approach).
 ``--no-position`` replays telemetry with attitude and height above ground but no position: geometry then runs
 on the image-only pose (fusion.image_motion); targets are judged where they point from the true pose.
 ``--pose-errors typical|harsh`` adds an autopilot's estimation errors to the telemetry fusion sees
@@ -59,6 +60,7 @@ class ReplayConfig:
     recall_every: int = 10            # frames between per-cell geometry checks
     hazards: bool = True              # hazard-rich worlds (sim.hazards)
     people: bool = False              # people standing around the spots too (sim.hazards.people_part)
+    approach: str = "straight"        # the flight's approach (sim.flight.Approach)
     width: int = 320                  # camera size: the networks see it resized, motion geometry crops it
     height: int = 240
     trace: str = ""                   # JSON lines, one per frame and model: why a target was (not) sent
@@ -128,13 +130,20 @@ def cell_recall(world: Any, fuser: LandingFuser, agl_m: float, min_height_m: flo
             int(open_flat.sum()), int((marked & open_flat).sum()), int(at_step.sum()), int((marked & at_step).sum()))
 
 
+def _approach(text: str) -> Any:
+    from edge_landing.sim.flight import Approach  # the sim extra, which every replay needs
+
+    return Approach.from_string(text)
+
+
 def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
     from edge_landing import sim
     from edge_landing.benchmarks.landing_truth import TruthConfig, check_target
     from edge_landing.sim.generate import SimConfig, render_sample, vehicle_samples
 
     scfg = SimConfig(out=Path("."), frames=cfg.frames, style=sim.Style.from_string(cfg.style), seed=cfg.seed,
-                     flight=True, fps=cfg.fps, width=cfg.width, height=cfg.height)
+                     flight=True, fps=cfg.fps, width=cfg.width, height=cfg.height,
+                     approach=sim.Approach.from_string(cfg.approach))
     world = sim.build_world(scfg.style, cfg.seed, hazards=cfg.hazards, people=cfg.people)
     mount = Mount()
     intr = scfg.intrinsics
@@ -253,6 +262,7 @@ def _check_args(a: argparse.Namespace) -> None:
         raise InputError(f"--size must be two sizes between 16 and 4096 pixels (W H), got {a.size[0]} {a.size[1]}")
     check_number("--obstacle-height", a.obstacle_height, 0.0, 10.0, lo_open=True, unit="metres")
     check_choice("--pose-errors", PoseErrors.from_string, a.pose_errors)
+    check_choice("--approach", _approach, a.approach)
     check_seed("--error-seed", a.error_seed)
     check_outputs_spare_inputs({"--json": a.json, "--trace": a.trace}, {})
     if a.trace:
@@ -273,6 +283,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--no-hazards", action="store_true", help="the plain towns (no sim.hazards)")
     p.add_argument("--people", action="store_true", help="people standing around the landing spots too: a pixel "
                    "or two wide at 640 px from 40 m, narrower than motion geometry resolves")
+    p.add_argument("--approach", default="straight", help="the flight's approach: straight (default) or arc (bent "
+                   "sideways, so the direction of flight turns; edge-sim --approach)")
     p.add_argument("--no-position", action="store_true", help="telemetry without position (image-only pose)")
     p.add_argument("--pose-errors", default="none", help="an autopilot's estimation errors added to the telemetry "
                    "fusion sees: none (the simulator's exact pose), typical or harsh (benchmarks.pose_errors)")
@@ -285,13 +297,14 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     _check_args(a)
     result = replay(ReplayConfig(a.style, a.seed, a.frames, models=tuple(a.models),
                                  obstacle_height_m=a.obstacle_height, width=a.size[0], height=a.size[1],
-                                 hazards=not a.no_hazards, people=a.people, trace=a.trace,
+                                 hazards=not a.no_hazards, people=a.people, approach=a.approach, trace=a.trace,
                                  no_position=a.no_position,
                                  pose_errors=PoseErrors.from_string(a.pose_errors).config(a.error_seed),
                                  geometry_timing=StageTiming.from_string(a.geometry_timing)),
                     progress=True)
     print(f"{a.style} seed {a.seed}, {a.frames} frames, camera {a.size[0]}x{a.size[1]}"
           + (", people standing around the spots" if a.people else "")
+          + (f", {a.approach} approach" if a.approach != "straight" else "")
           + (", telemetry without position" if a.no_position else "")
           + (f", {a.pose_errors} pose errors (seed {a.error_seed})" if a.pose_errors != "none" else "")
           + f", geometry {a.geometry_timing}")

@@ -36,14 +36,14 @@ from edge_landing.runtime.core.camera import Intrinsics
 
 from .camera import SimCamera, SimFrame
 from .effects import EffectOverrides, Effects, sample_effects
-from .flight import VehicleSample, plan_flight, random_view
+from .flight import Approach, VehicleSample, plan_flight, random_view
 from .generate import SIM_VERSION, SimConfig, generate
 from .render import Geometry, Renderer, Rendering
 from .world import Material, Style, World, build_world
 
 __version__ = SIM_VERSION
 __all__ = [
-    "SimCamera", "SimFrame", "EffectOverrides", "Effects", "sample_effects", "VehicleSample", "plan_flight",
+    "SimCamera", "SimFrame", "EffectOverrides", "Effects", "sample_effects", "Approach", "VehicleSample", "plan_flight",
     "random_view", "SimConfig", "generate", "Geometry", "Renderer", "Rendering", "Material", "Style", "World",
     "build_world", "Intrinsics", "__version__",
 ]

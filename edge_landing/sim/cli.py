@@ -6,10 +6,11 @@ import math
 from pathlib import Path
 from typing import Optional, Sequence
 
-from edge_landing.cli.common import CliParser, run_cli
+from edge_landing.cli.common import CliParser, check_choice, run_cli
 from edge_landing.runtime.core.errors import InputError
 
 from .effects import EffectOverrides
+from .flight import Approach
 from .generate import SimConfig, generate
 from .world import Style
 
@@ -49,6 +50,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "spot within 20 m (sim/hazards.py; recorded in scene.json for landing_truth)")
     p.add_argument("--flight", action="store_true", help="render one landing flight (approach, hover, descent) "
                    "and flight.mp4 instead of random views")
+    p.add_argument("--approach", default="straight", help="a flight's approach: straight (default) or arc (bent "
+                   "25 m sideways, camera turned towards the spot, so the direction of flight turns by up to ~35 "
+                   "deg; sim/flight.py)")
     p.add_argument("--fps", type=float, default=10.0, help="frame rate for frame times and the video (default 10)")
     p.add_argument("--preview", action="store_true", help="write preview.png: RGB | depth | HVO per row")
     p.add_argument("--no-normals", action="store_true", help="do not write normals/*.npy")
@@ -87,6 +91,9 @@ def _overrides(args: argparse.Namespace) -> EffectOverrides:
 def config_from_args(argv: Optional[Sequence[str]]) -> tuple[SimConfig, bool]:
     """(configuration, no progress bar) from command-line arguments; bad values raise InputError."""
     args = build_parser().parse_args(argv)
+    approach = check_choice("--approach", Approach.from_string, args.approach)
+    if approach is not Approach.STRAIGHT and not args.flight:
+        raise InputError(f"--approach {approach} needs --flight (random views have no approach)")
     hfov_deg = args.hfov_deg
     if hfov_deg is None:
         from .randomise import scene_hfov_deg
@@ -95,7 +102,7 @@ def config_from_args(argv: Optional[Sequence[str]]) -> tuple[SimConfig, bool]:
     return SimConfig(out=args.out, frames=args.frames, style=Style.from_string(args.style), seed=args.seed,
                      width=args.width, height=args.height, hfov_deg=hfov_deg, effects=_overrides(args),
                      randomise=args.randomise, hazards=args.hazards, people=args.people,
-                     flight=args.flight, fps=args.fps, preview=args.preview, write_normals=not args.no_normals,
+                     approach=approach, flight=args.flight, fps=args.fps, preview=args.preview, write_normals=not args.no_normals,
                      shadow_stride=args.shadow_stride, overwrite=args.overwrite), args.no_progress
 
 

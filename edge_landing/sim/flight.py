@@ -1,5 +1,11 @@
 """Vehicle poses: random benchmark views and a landing flight (approach, hover, descent).
 
+The approach is straight by default. ``Approach.ARC`` bends it sideways (up to ``ARC_OFFSET_M`` at mid-way,
+back on the line at its end) with the camera kept turned towards the spot: the direction of flight, and with it
+the epipolar lines the motion stage measures along, turns by up to about 35° during the approach. A straight
+approach keeps one direction, so an edge lying along it (a kerb, a shadow, a low wall along the flight) is seen
+sliding along itself by every pair and can never be confirmed clear (fusion.image_checks).
+
 Heights: ``agl_m`` is the distance straight down from the vehicle to the first surface (what a downward
 rangefinder reads), so a view above a roof is 30–90 m above that roof. The vehicle flies level for random
 views (roll = pitch = 0; the camera's 45° comes from the mount), and tilts a little while manoeuvring in a
@@ -13,12 +19,25 @@ from dataclasses import dataclass
 import numpy as np
 
 from edge_landing.runtime.core.camera import Attitude
+from edge_landing.runtime.core.choices import ChoiceEnum
 
 from .world import World
 
 VIEW_REGION_HALF_M = 150.0
 AGL_RANGE_M = (30.0, 90.0)
 PLAUSIBLE_SPEED_MPS = 25.0   # beyond what a multirotor landing camera flies
+ARC_OFFSET_M = 25.0          # an arc approach's sideways offset from the straight line, at mid-way
+
+
+class Approach(ChoiceEnum):
+    """The shape of a flight's approach (the hover and the descent are the same for both)."""
+
+    STRAIGHT = "straight"
+    ARC = "arc"
+
+    @classmethod
+    def _label(cls) -> str:
+        return "approach"
 
 
 @dataclass(frozen=True)
@@ -57,12 +76,15 @@ def _path_clearance_m(world: World, pts: np.ndarray) -> float:
     return float(np.min(world.surface_z(pts[:, 0], pts[:, 1]) - pts[:, 2]))
 
 
-def plan_flight(world: World, rng: np.random.Generator, frames: int, fps: float) -> list[VehicleSample]:
+def plan_flight(world: World, rng: np.random.Generator, frames: int, fps: float,
+                approach: Approach = Approach.STRAIGHT) -> list[VehicleSample]:
     """Approach (40 %), hover (20 %), descent (40 %) towards an open landing spot kept near the image centre.
 
     With the camera 45° down, the spot sits at the image centre when the horizontal distance to it equals
-    the height, so the approach ends and the descent runs along that line of sight.
+    the height, so the approach ends and the descent runs along that line of sight. ``approach``: see the
+    module docstring (the same random draws for both, so a seed flies to the same spot either way).
     """
+    offset_m = ARC_OFFSET_M if approach is Approach.ARC else 0.0
     spots = world.landing_spots
     near = spots[np.all(np.abs(spots) < VIEW_REGION_HALF_M, axis=1)] if len(spots) else spots
     targets = [near[i] for i in rng.permutation(len(near))[:60] if _clear_spot(world, *near[i])][:8]
@@ -75,6 +97,10 @@ def plan_flight(world: World, rng: np.random.Generator, frames: int, fps: float)
         s = _smooth(np.linspace(0, 1, n_a))
         dist, height = 170.0 - 110.0 * s, 80.0 - 20.0 * s      # horizontal distance to the spot, height
         app = np.column_stack([target[0] - fwd[0] * dist, target[1] - fwd[1] * dist, zt - height])
+        if offset_m:
+            side = offset_m * np.sin(math.pi * s)               # to the left of the line, back on it at the end
+            app[:, 0] -= fwd[1] * side
+            app[:, 1] += fwd[0] * side
         h = 60.0 - 45.0 * _smooth(np.linspace(0, 1, n_d))
         des = np.column_stack([target[0] - fwd[0] * h, target[1] - fwd[1] * h, zt - h])
         return app, des, s
@@ -102,7 +128,9 @@ def plan_flight(world: World, rng: np.random.Generator, frames: int, fps: float)
         if k < n_app:
             pos = app[k]
             speed = 4 * s[k] * (1 - s[k]) if n_app > 1 else 0.0
-            att = Attitude(0.0, float(-0.12 * speed), float(yaw))     # nose down while speeding up
+            # Nose down while speeding up; on an arc the camera stays turned towards the spot.
+            heading = math.atan2(target[1] - pos[1], target[0] - pos[0]) if offset_m else yaw
+            att = Attitude(0.0, float(-0.12 * speed), float(heading))
         elif k < n_app + n_hov:
             w = 2 * math.pi * t
             pos = app[-1] + np.array([0.3 * math.sin(0.7 * w), 0.3 * math.cos(0.5 * w), 0.2 * math.sin(0.3 * w)])

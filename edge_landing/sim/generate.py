@@ -20,7 +20,7 @@ from edge_landing.runtime.core.errors import InputError, SceneError
 from edge_landing.runtime.core.geometry import HvoThresholds
 
 from .effects import EffectOverrides, Effects, sample_effects
-from .flight import AGL_RANGE_M, PLAUSIBLE_SPEED_MPS, VehicleSample, peak_speed_mps, plan_flight, random_view
+from .flight import AGL_RANGE_M, PLAUSIBLE_SPEED_MPS, Approach, VehicleSample, peak_speed_mps, plan_flight, random_view
 from .render import Renderer, Rendering
 from .world import WORLD_HALF_SIZE_M, Style, build_world
 
@@ -53,6 +53,7 @@ class SimConfig:
     randomise: bool = False      # sim/randomise.py + sim/appearance.py: camera, palette and look draws
     hazards: bool = False       # sim.hazards around the landing spots
     people: bool = False        # people standing around them (sim.hazards.people_part)
+    approach: Approach = Approach.STRAIGHT   # a flight's approach (sim.flight)
 
     def __post_init__(self):
         if self.frames < 1:
@@ -89,7 +90,8 @@ def pose_of(frame: int, s: VehicleSample) -> Pose:
 def vehicle_samples(config: SimConfig, world) -> Iterator[VehicleSample]:
     """The vehicle pose of each frame, in order."""
     if config.flight:
-        samples = plan_flight(world, frame_rng(config.seed, 0, _PURPOSE_FLIGHT), config.frames, config.fps)
+        samples = plan_flight(world, frame_rng(config.seed, 0, _PURPOSE_FLIGHT), config.frames, config.fps,
+                              config.approach)
         fastest = peak_speed_mps(samples)
         if fastest > PLAUSIBLE_SPEED_MPS:
             # The approach covers ~110 m whatever the frame count: a short flight is a fast one, and edge-run
@@ -145,6 +147,7 @@ def generator_record(config: SimConfig, world, per_frame: list[dict]) -> dict:
         "effects": config.effects.to_json(), "shadow_stride": config.shadow_stride,
         "world": {"half_size_m": WORLD_HALF_SIZE_M, "triangles": int(len(world.tris)), "frame": "local NED"},
         "per_frame_effects": per_frame,
+        **({"approach": str(config.approach)} if config.flight else {}),
         **({"randomise": randomise_record(config)} if config.randomise else {}),
     }
 
