@@ -43,7 +43,7 @@ from .world import Material, Style, World, build_world
 
 __version__ = SIM_VERSION
 __all__ = [
-    "SimCamera", "SimFrame", "EffectOverrides", "Effects", "sample_effects", "Approach", "VehicleSample", "plan_flight",
-    "random_view", "SimConfig", "generate", "Geometry", "Renderer", "Rendering", "Material", "Style", "World",
-    "build_world", "Intrinsics", "__version__",
+    "SimCamera", "SimFrame", "EffectOverrides", "Effects", "sample_effects", "Approach", "VehicleSample",
+    "plan_flight", "random_view", "SimConfig", "generate", "Geometry", "Renderer", "Rendering", "Material", "Style",
+    "World", "build_world", "Intrinsics", "__version__",
 ]

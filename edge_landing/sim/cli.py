@@ -92,8 +92,6 @@ def config_from_args(argv: Optional[Sequence[str]]) -> tuple[SimConfig, bool]:
     """(configuration, no progress bar) from command-line arguments; bad values raise InputError."""
     args = build_parser().parse_args(argv)
     approach = check_choice("--approach", Approach.from_string, args.approach)
-    if approach is not Approach.STRAIGHT and not args.flight:
-        raise InputError(f"--approach {approach} needs --flight (random views have no approach)")
     hfov_deg = args.hfov_deg
     if hfov_deg is None:
         from .randomise import scene_hfov_deg
@@ -102,8 +100,9 @@ def config_from_args(argv: Optional[Sequence[str]]) -> tuple[SimConfig, bool]:
     return SimConfig(out=args.out, frames=args.frames, style=Style.from_string(args.style), seed=args.seed,
                      width=args.width, height=args.height, hfov_deg=hfov_deg, effects=_overrides(args),
                      randomise=args.randomise, hazards=args.hazards, people=args.people,
-                     approach=approach, flight=args.flight, fps=args.fps, preview=args.preview, write_normals=not args.no_normals,
-                     shadow_stride=args.shadow_stride, overwrite=args.overwrite), args.no_progress
+                     approach=approach, flight=args.flight, fps=args.fps, preview=args.preview,
+                     write_normals=not args.no_normals, shadow_stride=args.shadow_stride,
+                     overwrite=args.overwrite), args.no_progress
 
 
 def _main(argv: Optional[Sequence[str]]) -> int:

@@ -20,7 +20,15 @@ from edge_landing.runtime.core.errors import InputError, SceneError
 from edge_landing.runtime.core.geometry import HvoThresholds
 
 from .effects import EffectOverrides, Effects, sample_effects
-from .flight import AGL_RANGE_M, PLAUSIBLE_SPEED_MPS, Approach, VehicleSample, peak_speed_mps, plan_flight, random_view
+from .flight import (
+    AGL_RANGE_M,
+    PLAUSIBLE_SPEED_MPS,
+    Approach,
+    VehicleSample,
+    peak_speed_mps,
+    plan_flight,
+    random_view,
+)
 from .render import Renderer, Rendering
 from .world import WORLD_HALF_SIZE_M, Style, build_world
 
@@ -70,6 +78,8 @@ class SimConfig:
             raise InputError(f"--fps must be between 0.1 and 240, got {self.fps}")
         if not 1 <= self.shadow_stride <= 8:
             raise InputError(f"--shadow-stride must be between 1 and 8, got {self.shadow_stride}")
+        if self.approach is not Approach.STRAIGHT and not self.flight:
+            raise InputError(f"--approach {self.approach} needs --flight (random views have no approach)")
 
     @property
     def intrinsics(self) -> Intrinsics:
