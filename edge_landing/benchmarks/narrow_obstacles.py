@@ -55,6 +55,8 @@ class FieldConfig:
             check_number("--box", v, 0.05, 10.0, unit="metres")
         check_number("--spacing", self.spacing_m, max(self.box_m[:2]), 50.0, lo_open=True, unit="metres")
         check_number("--frames", self.frames, 2, 2000)
+        for flag, v in (("--size W", self.width), ("--size H", self.height)):
+            check_number(flag, v, 64, 4096, unit="pixels")
         from edge_landing.sim.world import Material
 
         for flag, name in (("--material", self.material), ("--top", self.top)):
@@ -114,13 +116,14 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--top", default="clutter", help="the boxes' tops (same choices)")
     p.add_argument("--colour", type=float, nargs=3, default=list(CLOTHING), metavar=("R", "G", "B"),
                    help="the sides' albedo tint, 0-1 (default dark blue clothing)")
+    p.add_argument("--size", type=int, nargs=2, default=[640, 480], metavar=("W", "H"), help="camera pixels")
     p.add_argument("--json", help="write the results here")
     a = p.parse_args(argv)
     check_outputs_spare_inputs({"--json": a.json}, {})
     if a.json:
         output_file(a.json, "the --json file")
     cfg = FieldConfig(tuple(a.heights), tuple(a.box), a.spacing, a.frames, material=a.material, top=a.top,
-                      colour=tuple(a.colour))
+                      colour=tuple(a.colour), width=a.size[0], height=a.size[1])
     print(f"boxes {cfg.box_m[0]:g} x {cfg.box_m[1]:g} m, {cfg.box_m[2]:g} m tall, {cfg.spacing_m:g} m apart, "
           f"{cfg.material} sides {tuple(cfg.colour)}, {cfg.top} tops; "
           f"camera {cfg.width}x{cfg.height}, lying model, {cfg.frames} frames per height", flush=True)
