@@ -270,8 +270,8 @@ def test_a_thin_low_wall_across_the_flight_needs_1280_px_from_74_m():
     """Walls 0.25 m thick and 0.7 m tall across the flight, 74 m from the camera (50 m up). At 640×480 a DIS
     patch covers 0.9 m of ground there and reads such a wall at about a third of its height, inside open
     ground's flow noise: parts of the walls are confirmed clear (the known limit, docs/MEASUREMENTS.md "Thin
-    walls and small objects need pixels", and why the built-in sim camera renders 1280×960). At 1280×960 the
-    patch covers half as much and no wall cell is confirmed, while the open ground between them is."""
+    walls and small objects need pixels"). At 1280×960 the patch covers half as much and no wall cell is
+    confirmed, while the open ground between them is."""
     centre = np.array([55.0, 0.0, 0.0])
     walls = [[centre[0] + dn, de, 0.125, 3.0, 0.7] for dn, de in ((-5.0, -5.0), (0.0, 5.0), (5.0, -5.0))]
     world = _flat_world(walls, side=Material.WALL, tint=(0.72, 0.70, 0.66), top=Material.CONCRETE)

@@ -36,10 +36,9 @@ from .world import MISS, Style, World, build_world
 
 log = logging.getLogger(__name__)
 DEFAULT_POSE_URL = "udpin:127.0.0.1:14562"
-# 640×480: motion geometry (ARCHITECTURE.md §11) needs the camera's own pixels to confirm a spot (at 160×120 a
-# DIS patch covers > 1.5 m of ground beyond ~15 m: nothing was ever confirmed in the closed loop). Renders in
-# ~0.2 s on one busy core, so the loop runs at ~4-5 frames/s; edge-run's scripted camera renders 1280×960 (thin
-# walls and small objects need the pixels), which would take four times as long here, while the autopilot flies.
+# 640×480, as edge-run's scripted sim camera: motion geometry (ARCHITECTURE.md §11) needs the camera's own
+# pixels to confirm a spot (at 160×120 a DIS patch covers > 1.5 m of ground beyond ~15 m: nothing was ever
+# confirmed in the closed loop). Renders in ~0.2 s on one busy core, so the loop runs at ~4-5 frames/s.
 DEFAULT_SIZE = (640, 480)
 HOME_SEARCH_HALF_M = 200.0         # flights stay well inside the 1.2 km world
 HOME_CLEAR_RADIUS_M = (15.0, 10.0, 6.0)

@@ -293,11 +293,10 @@ class SimReader(Reader):
 
     FLIGHT_FRAMES = 200
 
-    # 1280×960: motion geometry (ARCHITECTURE.md §11) reads an obstacle only a few of its flow patches wide at
-    # a fraction of its height; at 640×480 a patch covers 0.8-1.0 m of ground at 64-78 m, and 0.25 m thick low
-    # walls and 0.5 m boxes were confirmed clear (docs/MEASUREMENTS.md, "Thin walls and small objects need
-    # pixels"). At 160×120 nothing is ever confirmed. Renders 200 frames in about three minutes on one core.
-    DEFAULT_SIZE = (1280, 960)
+    # 640×480: motion geometry (ARCHITECTURE.md §11) needs the camera's own pixels to confirm a spot; at
+    # 160×120 a DIS patch covers > 1.5 m of ground beyond ~15 m and nothing is ever confirmed. Renders
+    # 200 frames in about a minute on one busy core.
+    DEFAULT_SIZE = (640, 480)
 
     def __init__(self, config: SourceConfig):
         from edge_landing.runtime.core.errors import require_extra
