@@ -60,6 +60,7 @@ def tiny_scene(path: Path, frames: int = 3) -> Path:
     (["--material", "water"], "--material"),
     (["--top", "nothing"], "--top"),
     (["--colour", "2", "0", "0"], "--colour"),
+    (["--size", "10", "480"], "--size W"),
     (["--json", "{t}/adir"], "--json"),
 ])
 def test_narrow_obstacles(capsys, files, argv, expected):
