@@ -112,10 +112,12 @@ def test_reset_while_a_stage_run_is_in_flight_drops_it():
 
 
 def test_edge_run_overlaps_the_stage_unless_told_inline():
-    from edge_landing.cli.run import config_from_args
+    from edge_landing.cli.run import config_from_args, fusion_config
 
     assert config_from_args([]).geometry_timing is StageTiming.OVERLAPPED
     assert config_from_args(["--geometry-timing", "inline"]).geometry_timing is StageTiming.INLINE
+    assert fusion_config(config_from_args([])).motion.max_width_px == 1280
+    assert fusion_config(config_from_args(["--geometry-width", "640"])).motion.max_width_px == 640
 
 
 def test_a_run_in_flight_when_the_program_ends_is_finished_not_torn_down(tmp_path):

@@ -89,7 +89,8 @@ def test_edge_run_on_a_fast_video_sends_at_the_cap(tmp_path):
 
 
 @pytest.mark.parametrize("argv, named", [(["--target-hz", "1"], "--target-hz"), (["--target-hz", "-3"], "--target-hz"),
-                                         (["--geometry-timing", "later"], "--geometry-timing")])
+                                         (["--geometry-timing", "later"], "--geometry-timing"),
+                                         (["--geometry-width", "100"], "--geometry-width")])
 def test_edge_run_names_a_bad_rate_or_timing(argv, named):
     from edge_landing.cli.run import config_from_args
 

@@ -38,11 +38,14 @@ from edge_landing.cli.run_camera import (
     check_tlog,
     tlog_config,
 )
+from edge_landing.cli.run_landing import add_landing_arguments
 from edge_landing.cli.run_model import add_model_arguments, choose_files, load_inference  # noqa: F401  (re-exported)
 from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.fusion.config import FusionConfig
 from edge_landing.runtime.fusion.deferred import StageTiming
+from edge_landing.runtime.fusion.motion_config import MotionConfig
 from edge_landing.runtime.io.autopilot_setup import SetupCheck
 from edge_landing.runtime.io.flight_record import TLOG_NAME, FlightRecorder, RecordingSource, check_record_folder
 from edge_landing.runtime.io.gimbal import GimbalSeries, GimbalSource
@@ -128,6 +131,7 @@ class RunConfig:
     obstacle_height_m: float = 0.5      # motion geometry must resolve this to confirm a spot (§11)
     allow_unconfirmed: bool = False     # send network-only spots (offline images have no motion)
     geometry_timing: StageTiming = StageTiming.OVERLAPPED   # the motion stage beside the frame path (fusion.deferred)
+    geometry_width_px: int = 1280       # motion geometry measures frames up to this wide (MotionConfig.max_width_px)
 
     @property
     def mount(self) -> Mount:
@@ -141,6 +145,7 @@ class RunConfig:
         check_number("--vehicle-radius", self.vehicle_radius_m, 0.0, lo_open=True, unit="metres")
         check_number("--margin", self.margin_m, 0.0, unit="metres")
         check_number("--obstacle-height", self.obstacle_height_m, 0.0, 10.0, lo_open=True, unit="metres")
+        check_number("--geometry-width", self.geometry_width_px, 160, 4096, unit="pixels")
         check_number("--mount-pitch", self.mount_pitch_deg, -90.0, 90.0, unit="degrees")
         check_number("--mount-roll", self.mount_roll_deg, -45.0, 45.0, unit="degrees")
         check_number("--mount-yaw", self.mount_yaw_deg, -180.0, 180.0, unit="degrees")
@@ -186,11 +191,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     add_camera_arguments(p)
     add_model_arguments(p)
-    f = p.add_argument_group("landing")
-    f.add_argument("--vehicle-radius", type=float, default=1.0, help="metres")
-    f.add_argument("--margin", type=float, default=1.0, help="extra clearance, metres")
-    f.add_argument("--grid", default="ned", help="ned: keep the landing grid in local NED across frames when the "
-                   "vehicle position is known (default); frame: a fresh grid around the vehicle every frame")
+    add_landing_arguments(p)
     k = p.add_argument_group("MAVLink")
     k.add_argument("--mav", help="pymavlink connection: udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT, /dev/ttyUSB0,57600")
     k.add_argument("--autopilot", default="ardupilot", help="ardupilot (BODY_FRD targets) or px4 (LOCAL_NED)")
@@ -215,14 +216,6 @@ def build_parser() -> argparse.ArgumentParser:
                    "edge-run --camera DIR/camera.avi --tlog DIR/link.tlog")
     o.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0 = no limit)")
     o.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0 = no limit)")
-    f.add_argument("--obstacle-height", type=float, default=0.5, help="metres: a spot is confirmed only when the "
-                   "drone's own motion could have seen an obstacle this tall there and saw none")
-    f.add_argument("--allow-unconfirmed", action="store_true", help="also send spots only the network vouches "
-                   "for (no motion geometry, e.g. still images); marked 'network only' in the log")
-    f.add_argument("--geometry-timing", default="overlapped", help="overlapped (default): a frame's motion "
-                   "geometry is measured on its own thread while the next frame is inferred, and that frame uses "
-                   "it, so the stage does not lengthen any frame's capture-to-send latency; inline: before the "
-                   "frame's own target (one frame sooner, the stage's time added to that frame's latency)")
     return p
 
 
@@ -240,14 +233,13 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      target_hz=a.target_hz,
                      vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
                      hfov_deg=a.hfov, intrinsics=a.intrinsics, mount_pitch_deg=a.mount_pitch, mount_roll_deg=a.mount_roll,
-                     mount_yaw_deg=a.mount_yaw, record=a.record,
-                     flight_record=a.flight_record,
+                     mount_yaw_deg=a.mount_yaw, record=a.record, flight_record=a.flight_record,
                      gimbal=GimbalSource.from_string(a.gimbal),
                      log_path=a.log_path,
                      max_frames=a.max_frames, duration_s=a.duration, overlap=not a.sequential, fusion_hz=a.fusion_hz,
                      grid=GridMode.from_string(a.grid), obstacle_height_m=a.obstacle_height,
                      allow_unconfirmed=a.allow_unconfirmed,
-                     geometry_timing=StageTiming.from_string(a.geometry_timing))
+                     geometry_timing=StageTiming.from_string(a.geometry_timing), geometry_width_px=a.geometry_width)
 
 
 def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> Dict[str, Any]:
@@ -265,6 +257,13 @@ def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> Dict[str
                       cfg.autopilot.value if cfg.mav else None, tlog=cfg.tlog)
 
 
+def fusion_config(cfg: RunConfig) -> FusionConfig:
+    """Fusion's settings from edge-run's landing flags."""
+    return FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m,
+                        obstacle_height_m=cfg.obstacle_height_m, allow_unconfirmed=cfg.allow_unconfirmed,
+                        geometry_timing=cfg.geometry_timing, motion=MotionConfig(max_width_px=cfg.geometry_width_px))
+
+
 def wait_for_telemetry(telemetry: TelemetryBuffer, wait_s: float, out: TextIO) -> None:
     """Give the autopilot a moment before the first frame: without telemetry no target may leave anyway."""
     print(f"edge-run: waiting up to {wait_s:g} s for autopilot telemetry", file=out, flush=True)
@@ -279,7 +278,7 @@ def wait_for_telemetry(telemetry: TelemetryBuffer, wait_s: float, out: TextIO) -
 
 def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
     out = out or sys.stdout
-    from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+    from edge_landing.runtime.fusion.fuser import LandingFuser
     from edge_landing.runtime.io.overlay import OverlayRecorder
     from edge_landing.runtime.perception.input_fit import describe_for_model
     from edge_landing.runtime.perception.scale import (
@@ -294,9 +293,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
     src = SourceConfig(camera=cfg.camera, kind=SourceKind.from_string(cfg.camera), width=cfg.camera_width,
                        height=cfg.camera_height, fps=cfg.fps, loop=cfg.loop, poses_csv=cfg.poses or "",
                        delay_s=cfg.camera_delay_s, tlog=tlog_config(cfg.tlog, cfg.tlog_video_start, cfg.mav_target_system))
-    fusion_cfg = FusionConfig(vehicle_radius_m=cfg.vehicle_radius_m, margin_m=cfg.margin_m,
-                              obstacle_height_m=cfg.obstacle_height_m, allow_unconfirmed=cfg.allow_unconfirmed,
-                              geometry_timing=cfg.geometry_timing)
+    fusion_cfg = fusion_config(cfg)
     telemetry = TelemetryBuffer(gimbal=GimbalSeries() if cfg.gimbal is GimbalSource.MAVLINK else None)
     # sim-follow renders the autopilot's pose: with --mav the link's telemetry is the drone's (as in flight),
     # without it the frame's own pose is.
@@ -391,8 +388,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
                                {"the shipped model": shipped, "the shipped INT8 model": shipped.with_suffix(".int8.onnx"),
                                 "--model": cfg.model, "--depth-model": cfg.depth_model, "--hvo-model": cfg.hvo_model,
                                 "--calibration": cfg.calibration, "--mav-key": cfg.mav_key, "--poses": cfg.poses,
-                                "--tlog": cfg.tlog,
-                                "--camera": camera})
+                                "--tlog": cfg.tlog, "--camera": camera})
     return run(cfg)
 
 
