@@ -6,7 +6,8 @@ over it at each height with a gentle weave; every frame goes through fusion with
 horizontal ground everywhere, benchmarks.lying_model) and motion geometry, as edge-run fuses it with exact
 telemetry. Every confirmed target is judged by ray casting (landing_truth.check_target): "unsafe" means a box
 stands inside its clearance disc. Geometry is the only evidence against the boxes here, so the unsafe share is
-what geometry misses: DIS reads an object a few pixels wide at a fraction of its height (docs/MEASUREMENTS.md,
+what geometry misses where fusion's spots happened to be; what it said about every box, whatever the spots, is
+counted too (``BoxCells``: boxes measured, confirmed clear on some frame, marked as obstacles): DIS reads an object a few pixels wide at a fraction of its height (docs/MEASUREMENTS.md,
 "Narrow obstacles").
 
     python -m edge_landing.benchmarks.narrow_obstacles --heights 30 40 50 --box 0.45 0.28 1.7 --spacing 7
@@ -88,19 +89,52 @@ def fly(cfg: FieldConfig, agl_m: float) -> dict[str, Any]:
     truth = TruthConfig(log="", clearance_m=fusion.required_clearance_m)
     rng = np.random.default_rng(cfg.seed)
     confirmed, unsafe, why = 0, 0, list[str]()
+    seen = BoxCells(np.array([[r[0], r[1]] for r in rows]), fusion.obstacle_height_m)
     for k in range(cfg.frames):
         t_s = k / cfg.fps
         p = np.array([-10.0 + cfg.speed_mps * t_s, 2.0 * math.sin(0.1 * k), -agl_m])
         render = renderer.render(p, Attitude(), effects, rng)
         state = VehicleState(t_s, Attitude(), p, agl_m, "sim")
         target = fuser.update(lying_prediction(intr, mount, state, k), state, t_s, render.rgb)
+        seen.add(fuser)
         if target.valid and target.position_ned_m is not None:
             confirmed += 1
             ok, reason = check_target(world, float(target.position_ned_m[0]), float(target.position_ned_m[1]), truth)
             unsafe += not ok
             if not ok and len(why) < 3:
                 why.append(f"frame {k}: {reason}")
-    return {"agl_m": agl_m, "frames": cfg.frames, "confirmed": confirmed, "unsafe": unsafe, "unsafe_examples": why}
+    return {"agl_m": agl_m, "frames": cfg.frames, "confirmed": confirmed, "unsafe": unsafe, "unsafe_examples": why,
+            "boxes": seen.counts()}
+
+
+class BoxCells:
+    """What geometry alone said about each box, whatever spot fusion chose: the fusion-grid cell holding the box's
+    centre, over a whole pass. Sent targets judge geometry only where a spot happened to be steered; this counts
+    every box it measured (to the obstacle height), and how many of those it confirmed clear on some frame or
+    marked as an obstacle."""
+
+    def __init__(self, centres_ne_m: np.ndarray, obstacle_height_m: float):
+        self.centres = centres_ne_m
+        self.obstacle_height_m = obstacle_height_m
+        self.measured = np.zeros(len(centres_ne_m), bool)
+        self.clear = np.zeros(len(centres_ne_m), bool)
+        self.obstacle = np.zeros(len(centres_ne_m), bool)
+
+    def add(self, fuser: LandingFuser) -> None:
+        geo, view = fuser.geometry, fuser.grid
+        if geo is None or view is None:
+            return
+        r = np.floor((self.centres[:, 0] - view.north0_m) / view.cell_m).astype(int)
+        c = np.floor((self.centres[:, 1] - view.east0_m) / view.cell_m).astype(int)
+        inside = (r >= 0) & (r < geo.clear.shape[0]) & (c >= 0) & (c < geo.clear.shape[1])
+        r, c = r[inside], c[inside]
+        self.measured[inside] |= geo.detectable_m[r, c] <= self.obstacle_height_m
+        self.clear[inside] |= geo.clear[r, c]
+        self.obstacle[inside] |= geo.obstacle[r, c]
+
+    def counts(self) -> dict[str, int]:
+        return {"measured": int(self.measured.sum()), "confirmed_clear": int((self.measured & self.clear).sum()),
+                "marked_obstacle": int((self.measured & self.obstacle).sum())}
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
@@ -131,8 +165,11 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     for agl in cfg.heights_m:
         r = fly(cfg, agl)
         results.append(r)
+        b = r["boxes"]
         print(f"{agl:5.0f} m: {r['confirmed']} confirmed targets, {r['unsafe']} with a box inside the disc"
-              + (f" (e.g. {r['unsafe_examples'][0]})" if r["unsafe_examples"] else ""), flush=True)
+              + (f" (e.g. {r['unsafe_examples'][0]})" if r["unsafe_examples"] else "")
+              + f"; geometry measured {b['measured']} boxes' cells, confirmed {b['confirmed_clear']} of them clear "
+              f"on some frame, marked {b['marked_obstacle']} as obstacles", flush=True)
     if a.json:
         Path(a.json).write_text(json.dumps({"config": asdict(cfg), "results": results}, indent=1))
     return 0
