@@ -7,8 +7,8 @@ horizontal ground everywhere, benchmarks.lying_model) and motion geometry, as ed
 telemetry. Every confirmed target is judged by ray casting (landing_truth.check_target): "unsafe" means a box
 stands inside its clearance disc. Geometry is the only evidence against the boxes here, so the unsafe share is
 what geometry misses where fusion's spots happened to be; what it said about every box, whatever the spots, is
-counted too (``BoxCells``: boxes measured, confirmed clear on some frame, marked as obstacles): DIS reads an object a few pixels wide at a fraction of its height (docs/MEASUREMENTS.md,
-"Narrow obstacles").
+counted too (``BoxCells``: boxes measured, confirmed clear on some frame, marked as obstacles). DIS reads an
+object a few pixels wide at a fraction of its height (docs/MEASUREMENTS.md, "Narrow obstacles").
 
     python -m edge_landing.benchmarks.narrow_obstacles --heights 30 40 50 --box 0.45 0.28 1.7 --spacing 7
 """
