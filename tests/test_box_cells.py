@@ -6,6 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from edge_landing.benchmarks.narrow_obstacles import BoxCells
+from edge_landing.runtime.fusion.grid_view import GridView
 from edge_landing.runtime.fusion.motion_grid import GeometryView
 
 
@@ -20,7 +21,9 @@ def _frame(clear_cells=(), obstacle_cells=(), measured_to_m: float = 0.3, north0
         obstacle[rc] = True
     geo = GeometryView(0.0, 0.5, clear, obstacle, np.full(shape, measured_to_m, np.float32), np.full(shape, 10.0),
                        np.zeros(shape), np.zeros(shape))
-    return SimpleNamespace(geometry=geo, grid=SimpleNamespace(north0_m=north0_m, east0_m=-2.0, cell_m=0.5))
+    grid = GridView("ned", 0.5, north0_m, -2.0, 0.0, np.zeros((5, *shape)), np.zeros(shape, bool),
+                    np.zeros(shape, np.float32))
+    return SimpleNamespace(geometry=geo, grid=grid)
 
 
 def test_boxes_are_counted_by_the_cell_holding_their_centre_over_the_whole_pass():

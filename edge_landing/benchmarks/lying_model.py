@@ -47,6 +47,7 @@ from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Prediction, VehicleState
 from edge_landing.runtime.fusion.deferred import StageTiming
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+from edge_landing.runtime.io.sources import SimReader
 
 
 @dataclass(frozen=True)
@@ -61,8 +62,8 @@ class ReplayConfig:
     hazards: bool = True              # hazard-rich worlds (sim.hazards)
     people: bool = False              # people standing around the spots too (sim.hazards.people_part)
     approach: str = "straight"        # the flight's approach (sim.flight.Approach)
-    width: int = 640                  # camera size: the networks see it resized, motion geometry crops it
-    height: int = 480
+    width: int = SimReader.DEFAULT_SIZE[0]   # camera size (edge-run's sim camera's): the networks see it resized,
+    height: int = SimReader.DEFAULT_SIZE[1]  # motion geometry crops it
     trace: str = ""                   # JSON lines, one per frame and model: why a target was (not) sent
     no_position: bool = False         # telemetry without position: geometry from the image-only pose
     pose_errors: PoseErrorConfig = PoseErrorConfig()   # an autopilot's estimation errors on what fusion sees
@@ -279,7 +280,7 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--models", nargs="+", default=["lying"], choices=["lying", "shipped"])
     p.add_argument("--obstacle-height", type=float, default=0.5)
-    p.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"),
+    p.add_argument("--size", type=int, nargs=2, default=SimReader.DEFAULT_SIZE, metavar=("W", "H"),
                    help="camera size (default: edge-run's built-in sim camera's)")
     p.add_argument("--no-hazards", action="store_true", help="the plain towns (no sim.hazards)")
     p.add_argument("--people", action="store_true", help="people standing around the landing spots too: a pixel "

@@ -124,13 +124,12 @@ class BoxCells:
         geo, view = fuser.geometry, fuser.grid
         if geo is None or view is None:
             return
-        r = np.floor((self.centres[:, 0] - view.north0_m) / view.cell_m).astype(int)
-        c = np.floor((self.centres[:, 1] - view.east0_m) / view.cell_m).astype(int)
-        inside = (r >= 0) & (r < geo.clear.shape[0]) & (c >= 0) & (c < geo.clear.shape[1])
-        r, c = r[inside], c[inside]
-        self.measured[inside] |= geo.detectable_m[r, c] <= self.obstacle_height_m
-        self.clear[inside] |= geo.clear[r, c]
-        self.obstacle[inside] |= geo.obstacle[r, c]
+        for i, (north, east) in enumerate(self.centres):
+            cell = view.cell_of(float(north), float(east))   # the geometry view is aligned with the grid
+            if cell is not None:
+                self.measured[i] |= bool(geo.detectable_m[cell] <= self.obstacle_height_m)
+                self.clear[i] |= bool(geo.clear[cell])
+                self.obstacle[i] |= bool(geo.obstacle[cell])
 
     def counts(self) -> dict[str, int]:
         return {"measured": int(self.measured.sum()), "confirmed_clear": int((self.measured & self.clear).sum()),
