@@ -55,6 +55,7 @@ from edge_landing.runtime.fusion.parallax import (
     plane_homography,
 )
 from edge_landing.runtime.fusion.plane_sweep import sweep_plane
+from edge_landing.runtime.fusion.residual import ray_footprints, unmatched_pixels
 from edge_landing.runtime.fusion.rotation_fit import drift_beyond_an_ekf, pair_rotation_error, rotation_flow
 from edge_landing.runtime.fusion.streaks import RainFilter
 
@@ -377,6 +378,8 @@ class MotionStage:
                                     cfg.overhang_check_m)
         detectable = np.where(reliable & resolved, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
         out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
+        odd = unmatched_pixels(cur, matched, matched_ok & tex, near & in_ref, cfg.residual, rain)
+        unmatched = ray_footprints(pose, xc[:, odd], np.nan_to_num(ground[odd]), cfg.residual)
         baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))
         self.last_reason = ""
         # Only a pair whose flow held (noise near the floor, most of the window explained) may move the plane:
@@ -387,4 +390,4 @@ class MotionStage:
                               time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & ~explained,
                               POSE_TELEMETRY if image_pose is None else POSE_IMAGE,
                               0.0 if image_pose is None else image_pose.sigma_m, rain,
-                              sweep.ground_m - sweep.level_m)
+                              sweep.ground_m - sweep.level_m, unmatched)

@@ -15,6 +15,7 @@ from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.fusion.image_checks import ImageCheckConfig
 from edge_landing.runtime.fusion.image_motion import ImagePoseConfig
 from edge_landing.runtime.fusion.plane_sweep import SweepConfig
+from edge_landing.runtime.fusion.residual import ResidualConfig
 from edge_landing.runtime.fusion.rotation_fit import RotationFitConfig
 from edge_landing.runtime.fusion.streaks import StreakConfig
 
@@ -78,6 +79,7 @@ class MotionConfig:
     sweep: SweepConfig = SweepConfig()                # the plane a window is measured against (fusion.plane_sweep)
     checks: ImageCheckConfig = ImageCheckConfig()     # texture and moving-as-posed (fusion.image_checks)
     rotation_fit: RotationFitConfig = RotationFitConfig()   # the telemetry's rotation drift (fusion.rotation_fit)
+    residual: ResidualConfig = ResidualConfig()       # what the flow left unmatched (fusion.residual)
 
     def __post_init__(self) -> None:
         h, w = self.window_hw
@@ -127,3 +129,6 @@ class ParallaxResult:
     pose_sigma_m: float = 0.0            # 1-σ error of the image pose's worst direction (0: telemetry)
     rain_share: float = 0.0              # share of the window found to be rain, when filled in (fusion.streaks)
     plane_raised_m: float = 0.0          # the plane's height above the ground's level (a roof; fusion.plane_sweep)
+    # North, east (N×2, local NED) where something the flow did not match may stand: the rays of pixels too
+    # thin for the flow, from the ground up to a person's height (fusion.residual). Obstacle evidence only.
+    unmatched_ne_m: Optional[np.ndarray] = None

@@ -5,7 +5,9 @@ line up cell for cell. Per cell, from each frame pair (motion.ParallaxResult):
 - the smallest obstacle height that frame could have detected there (``detectable``, the worst reliable
   pixel of the cell: every part of the cell must have been measurable);
 - whether some pixel stood out: |height| >= half the obstacle height and >= ``detect_sigmas`` σ ("high";
-  drops count too: a site must be flat).
+  drops count too: a site must be flat);
+- whether the ray of a pixel the flow left unmatched crosses it (fusion.residual: something too thin for the
+  flow may stand there). It votes like "high" but neither revokes nor blocks a confirmation on its own.
 Across frames: the cell's mean height in each frame is fused by inverse variance (σ = the worst pixel's,
 weights decaying with ``memory_s``): sensor noise and rain differ from frame to frame, so pairs that each
 detect too little on a noisy flight detect less together (measurements: docs §11). Pairs share keyframes
@@ -162,7 +164,7 @@ class GeometryGrid:
         frame = self._frame_cells(result)
         if frame is None:
             return 0
-        r0, c0, det, high, suspect, mean_h, mean_down = frame
+        r0, c0, det, high, suspect, mean_h, mean_down, unmatched = frame
         win = (slice(r0, r0 + det.shape[0]), slice(c0, c0 + det.shape[1]))
         r1, c1 = r0 + det.shape[0], c0 + det.shape[1]
         box = self._box
@@ -193,8 +195,10 @@ class GeometryGrid:
         self._clear_t[win][(high | suspect) & ~confirm] = -np.inf
         self._clear_base[win][confirm] = np.float32(result.baseline_m)
         self._clear_down[win][confirm] = mean_down[confirm]
-        self._w[0][win] += measured | high
-        self._w[1][win] += high
+        # Unmatched pixels vote with the high ones but neither revoke nor block a confirmation by themselves: open
+        # ground has a few in some pairs, a person in most (fusion.residual).
+        self._w[0][win] += measured | high | unmatched
+        self._w[1][win] += high | unmatched
         return int(measured.sum())
 
     def _fused_evidence(self, fused: np.ndarray, best_det: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -207,10 +211,19 @@ class GeometryGrid:
             high = np.isfinite(det) & (dev >= 0.5 * self.obstacle_height_m) & (dev >= det)
         return det, high
 
+    def _cells_of(self, ne_m: Optional[np.ndarray]) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """(rows, columns) of the grid cells holding north, east points (N×2; None: none inside the grid)."""
+        if ne_m is None or len(ne_m) == 0:
+            return None
+        r = np.floor((ne_m[:, 0] - self.north0_m) / self.cell_m).astype(np.int64)
+        c = np.floor((ne_m[:, 1] - self.east0_m) / self.cell_m).astype(np.int64)
+        inside = (r >= 0) & (r < self.size) & (c >= 0) & (c < self.size)
+        return (r[inside], c[inside]) if inside.any() else None
+
     def _frame_cells(self, result: ParallaxResult
-                     ) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """(row0, col0, detectable, high, suspect, mean height, mean NED down per cell) on the bounding box of
-        this frame's cells."""
+                     ) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """(row0, col0, detectable, high, suspect, mean height, mean NED down, unmatched per cell) on the bounding
+        box of this frame's cells."""
         ned = result.ned_m
         ok = np.isfinite(ned[0])
         if not ok.any():
@@ -226,8 +239,10 @@ class GeometryGrid:
         down = ned[2][ok][inside]
         det = result.detectable_m[ok][inside]
         sigma = result.sigma_m[ok][inside]
-        r0, r1, c0, c1 = max(int(r.min()) - 1, 0), min(int(r.max()) + 2, self.size), \
-            max(int(c.min()) - 1, 0), min(int(c.max()) + 2, self.size)
+        odd = self._cells_of(result.unmatched_ne_m)
+        ar, ac = (r, c) if odd is None else (np.concatenate([r, odd[0]]), np.concatenate([c, odd[1]]))
+        r0, r1, c0, c1 = max(int(ar.min()) - 1, 0), min(int(ar.max()) + 2, self.size), \
+            max(int(ac.min()) - 1, 0), min(int(ac.max()) + 2, self.size)
         rows, cols = r1 - r0, c1 - c0
         idx = (r - r0) * cols + (c - c0)
         n = rows * cols
@@ -249,6 +264,9 @@ class GeometryGrid:
         # frame when a quarter of its pixels do (any one, for cells of up to four pixels, at long range).
         n_high = np.bincount(idx[high_px], minlength=n)
         high = ((n_high > 0) & (n_high >= self.min_high_share * n_rel)).reshape(rows, cols)
+        unmatched = np.zeros((rows, cols), bool)
+        if odd is not None:   # something too thin for the flow may stand there (fusion.residual)
+            unmatched = (np.bincount((odd[0] - r0) * cols + (odd[1] - c0), minlength=n) > 0).reshape(rows, cols)
         # Every part of a cell must be explained by the plane model: pixels the flow could not match (occlusion
         # by something tall, a parallax too large for the pair) are not "no evidence" but unexplained, so a
         # cell with more than a few of them is not measured in this frame, and one with mostly unexplained
@@ -263,7 +281,7 @@ class GeometryGrid:
             mean_h = (np.bincount(idx[measured_px], weights=hgt[measured_px], minlength=n) / n_rel).reshape(rows, cols)
             mean_down = (np.bincount(idx[measured_px], weights=down[measured_px], minlength=n) / n_rel
                          ).reshape(rows, cols).astype(np.float32)
-        return r0, c0, det_c, high, suspect, mean_h, mean_down
+        return r0, c0, det_c, high, suspect, mean_h, mean_down, unmatched
 
     def view(self, north0_m: float, east0_m: float, shape: tuple[int, int], now_s: float) -> GeometryView:
         """The evidence on a window of cells whose corner is (north0, east0) (cells outside: no evidence).
