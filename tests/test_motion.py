@@ -286,16 +286,16 @@ def test_a_thin_low_wall_across_the_flight_needs_1280_px_from_74_m():
     assert _open_share(grid, view, walls, centre) > 0.25      # 0.35 when written: its window covers less ground
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known blind spot: a dark person on dark grass is "
-                   "matched by the ground's flow and reads 0-0.3 m from 50 m (docs/MEASUREMENTS.md, 'People: what "
-                   "the flow leaves unmatched')")
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known blind spot: a dark person on dark grass reads "
+                   "0-0.3 m from 50 m and colour marks 3 of their 4 cells (docs/MEASUREMENTS.md, 'People: what the "
+                   "flow leaves unmatched')")
 def test_a_standing_person_below_the_flight_is_an_obstacle_from_50_m():
     """People (0.45 × 0.28 m, 1.7 m tall, dark blue clothes) 4 m around a spot 18-40 m ahead of the vehicle, 50 m
     up (20-39° from straight down), at 640×480. What a landing needs: each is an obstacle and none of their cells
     is confirmed clear. DIS reads them at 0-0.3 m; the residual check (fusion.residual) marks the three that
-    differ from their grass (test_residual), not the one at (30, -4) on dark grass (35 grey levels against 46):
-    all its cells are confirmed clear. Strict: when this passes, the marker must go (and the README's warning
-    with it)."""
+    differ from their grass in grey (test_residual). The one at (30, -4) on dark grass (35 grey levels against
+    46) is seen in colour only (fusion.chroma): three of its four cells are obstacles, one is confirmed clear.
+    Strict: when this passes, the marker must go (and the README's warning with it)."""
     centre = np.array([30.0, 0.0, 0.0])
     people = [[centre[0] + dn, de, 0.225, 0.14, 1.7] for dn, de in ((0.0, -4.0), (0.0, 4.0), (-4.0, 0.0), (4.0, 0.0))]
     world = _flat_world(people, side=Material.CLUTTER, tint=(0.15, 0.18, 0.35), top=Material.CLUTTER)

@@ -103,8 +103,8 @@ sim = pytest.importorskip("edge_landing.sim", reason="the sim extra (embreex) re
 def test_people_with_contrast_against_the_grass_are_obstacles_from_50_m():
     """Four people (0.45 × 0.28 m, 1.7 m tall, dark blue) 4 m around a spot 30 m ahead, 50 m up, at 640×480. DIS
     reads them at 0-0.3 m: without the residual check their cells were confirmed clear. Three stand on grass
-    they differ from by 35-45 grey levels; the one on dark grass (35 against 46) is not seen (the strict
-    expected failure in test_motion)."""
+    they differ from by 35-45 grey levels; the one on dark grass (35 against 46) is seen in colour only, and
+    partly (the strict expected failure in test_motion)."""
     from tests.test_motion import Material, _cells_within, _flat_world, _fly_over, _open_share
 
     centre = np.array([30.0, 0.0, 0.0])
@@ -116,5 +116,31 @@ def test_people_with_contrast_against_the_grass_are_obstacles_from_50_m():
         cells = _cells_within(grid, n, e, hn, he)
         assert view.obstacle[cells].all() and not view.clear[cells].any(), (n, e)
     config = MotionConfig()
-    grid, view = _fly_over(world, centre, 50.0, replace(config, residual=replace(config.residual, ratio=0.0)))
+    grid, view = _fly_over(world, centre, 50.0, replace(config, residual=replace(config.residual, ratio=0.0)))   # off
     assert all(view.clear[_cells_within(grid, n, e, hn, he)].any() for n, e, hn, he, _ in people)
+
+
+def test_a_person_of_the_grass_s_grey_is_unmatched_in_colour_only():
+    """Red clothes whose grey equals the green grass's: the grey residual sees nothing, Cr does (fusion.chroma)."""
+    import cv2
+
+    from edge_landing.runtime.fusion.chroma import ChromaMaker, chroma_unmatched
+
+    rng = np.random.default_rng(4)
+    shade = np.clip(1.0 + 0.03 * rng.standard_normal((120, 160, 1)), 0.3, 2.0)   # lawn: little texture in grey
+    grass = np.clip(shade * np.array([70.0, 110.0, 40.0]), 0, 255).astype(np.uint8)
+    cur = grass.copy()
+    cur[50:60, 80:84] = (175, 55, 55)                         # grey 0.299·175 + 0.587·55 + 0.114·55 = 91 ≈ grass
+    cur, grass = (np.clip(im + rng.normal(0.0, 2.0, im.shape), 0, 255).astype(np.uint8) for im in (cur, grass))  # noise
+    grey_c, grey_g = cv2.cvtColor(cur, cv2.COLOR_RGB2GRAY), cv2.cvtColor(grass, cv2.COLOR_RGB2GRAY)
+    assert abs(float(grey_c[50:60, 80:84].mean()) - float(grey_g[45:65, 70:94].mean())) < 2
+    everywhere = np.ones((120, 160), bool)
+    config = ResidualConfig()
+    assert not unmatched_pixels(grey_c, grey_g, everywhere, everywhere, config)[50:60, 80:84].any()
+    maker = ChromaMaker(np.array([[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]]), None, (120, 160))
+    window, still = (slice(0, 120), slice(0, 160)), np.zeros((120, 160, 2), np.float32)
+    odd = chroma_unmatched(maker(cur), maker(grass), np.eye(3), window, still, everywhere, everywhere, config)
+    assert odd[50:60, 80:84].any()
+    odd[46:64, 76:88] = False
+    assert not odd.any()
+    assert maker(grey_c) is None                              # a grey camera: no colour to compare

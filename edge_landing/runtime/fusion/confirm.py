@@ -189,16 +189,18 @@ class GeometryConfirmation:
         # reported per frame), with telemetry positions.
         yaw = state.attitude.yaw_rad if position is not None and state is not None and state.camera_mount is None \
             else None
-        # The frame's own copy: the caller may draw on or reuse its buffer while the stage reads it on a thread.
-        grey = image.copy() if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-        self._runner.submit(partial(self._stage, grey, pose, t_cap, focus, position is not None, yaw))
+        # The frame's own copy: the caller may draw on or reuse its buffer while the stage reads it on a thread. In
+        # colour when the stage checks colour (fusion.chroma).
+        keep = image.ndim == 2 or self.motion.config.residual.colour
+        frame = image.copy() if keep else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        self._runner.submit(partial(self._stage, frame, pose, t_cap, focus, position is not None, yaw))
 
-    def _stage(self, grey: np.ndarray, pose: CameraPose, t_cap: float, focus: Optional[Callable[[], np.ndarray]],
+    def _stage(self, frame: np.ndarray, pose: CameraPose, t_cap: float, focus: Optional[Callable[[], np.ndarray]],
                has_position: bool, yaw_rad: Optional[float]) -> _StageOutcome:
         """The candidate spots, the motion stage's update and the mount check; touches only the stage's and the
         check's state."""
         motion = self.motion
-        result = motion.update(grey, pose, t_cap, None if focus is None else focus())
+        result = motion.update(frame, pose, t_cap, None if focus is None else focus())
         anchored = has_position or motion.anchored                  # in the telemetry's frame
         checked = yaw_rad is not None and self.mount_check.due(t_cap) and self.mount_check.add(motion.keyframes, yaw_rad)
         estimate = self.mount_check.estimate() if checked else None

@@ -22,13 +22,15 @@ class Keyframe:
     """A grey frame at the stage's size, its time (s, local clock) and camera pose, and where the pose came from.
 
     ``scale_agl_m``: the height above ground that set the metric scale of the frame (the telemetry's, or the one
-    the images carried over when it was refused: fusion.image_motion.carried_height_m); NaN: not known."""
+    the images carried over when it was refused: fusion.image_motion.carried_height_m); NaN: not known.
+    ``chroma``: its Cr, Cb at half the size (fusion.chroma; None: a grey camera)."""
 
     time_s: float
     grey: np.ndarray
     pose: CameraPose
     source: str = POSE_TELEMETRY
     scale_agl_m: float = math.nan
+    chroma: Optional[np.ndarray] = None
 
 
 def prune_keyframes(ring: Deque[Keyframe], time_s: float, history_s: float) -> None:

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from edge_landing.runtime.core.camera import Intrinsics, Mount
+from edge_landing.runtime.fusion.chroma import ChromaMaker, chroma_unmatched
 from edge_landing.runtime.fusion.image_checks import (
     along_epipolar_lines,
     moved_as_posed,
@@ -97,6 +98,8 @@ class MotionStage:
         self._rain = RainFilter(config.streaks)               # rain streaks out of each pair (fusion.streaks)
         self.position_ned_m: Optional[np.ndarray] = None  # where the last frame was placed (odometry or NED)
         self._odometry = ImageOdometry(config, self.k_cv)  # places frames without a telemetry position
+        self._chroma = ChromaMaker(self.k_cv, i.dist, (h, w)) if config.residual.colour else None   # fusion.chroma
+        self._cur_chroma: Optional[np.ndarray] = None      # this frame's, for the residual check (fusion.chroma)
 
     @property
     def keyframes(self) -> tuple[Keyframe, ...]:
@@ -173,6 +176,7 @@ class MotionStage:
             self.last_reason = f"height above ground {pose.agl_m} m unusable (need >= {cfg.min_agl_m} m)"
             return None
         grey = self.grey(image)
+        self._cur_chroma = None if self._chroma is None else self._chroma(image)
         prune_keyframes(self._history, time_s, cfg.history_s)
         source = POSE_TELEMETRY if np.all(np.isfinite(pose.position_ned_m)) else POSE_IMAGE
         self._odometry.estimate, self.last_reason, restarted = None, "", None
@@ -209,7 +213,7 @@ class MotionStage:
         self.position_ned_m = pose.position_ned_m.copy()
         # An anchored image position is in the telemetry's frame: a position dropout, not a new frame.
         store_keyframe(self._history, Keyframe(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source,
-                                               raw_agl), cfg)
+                                               raw_agl, self._cur_chroma), cfg)
         if restarted and window is not None:     # (the ring is empty: "no earlier frame yet" says less)
             self.last_reason = f"odometry started over: {restarted}"
         self.last = result
@@ -379,6 +383,9 @@ class MotionStage:
         detectable = np.where(reliable & resolved, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
         out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
         odd = unmatched_pixels(cur, matched, matched_ok & tex, near & in_ref, cfg.residual, rain)
+        if ref.chroma is not None and self._cur_chroma is not None:
+            odd |= chroma_unmatched(self._cur_chroma, ref.chroma, hom, window, flow, matched_ok & tex, near & in_ref,
+                                    cfg.residual, rain)
         unmatched = ray_footprints(pose, xc[:, odd], np.nan_to_num(ground[odd]), cfg.residual)
         baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))
         self.last_reason = ""

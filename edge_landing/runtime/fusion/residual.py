@@ -25,6 +25,7 @@ ground point alone, a person's own cells stayed clear. Pure numpy/OpenCV, no I/O
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -39,6 +40,8 @@ class ResidualConfig:
 
     ratio: float = 4.0          # × the window's median (gradient-relative) residual: above it, unmatched
     floor_grey: float = 8.0     # grey levels added to the gradient: residual of noise where there is no texture
+    colour: bool = True         # check Cr and Cb too (fusion.chroma): people whose grey matches the ground
+    chroma_floor: float = 2.0   # the same floor for the chroma channels (levels of 8-bit Cr, Cb)
     max_rain_share: float = 0.01   # a pair with more of its window found to be rain is not checked
     box_px: int = 3             # the residual is averaged over this box (a person's width at 50 m)
     min_pixels: int = 100       # fewer matched pixels than this: no scale, nothing is unmatched
@@ -46,21 +49,25 @@ class ResidualConfig:
     reach_steps: int = 9        # points along its ray up to there (0.25 m apart in height)
 
     def __post_init__(self) -> None:
-        if not self.ratio >= 0 or not self.floor_grey > 0 or not self.reach_m >= 0 or not self.max_rain_share >= 0:
-            raise InputError(f"residual ratio, reach_m and max_rain_share must be >= 0 and floor_grey > 0, got "
-                             f"{self.ratio}, {self.reach_m}, {self.max_rain_share}, {self.floor_grey}")
+        if not self.ratio >= 0 or not self.reach_m >= 0 or not self.max_rain_share >= 0:
+            raise InputError(f"residual ratio, reach_m and max_rain_share must be >= 0, got {self.ratio}, "
+                             f"{self.reach_m}, {self.max_rain_share}")
+        if not self.floor_grey > 0 or not self.chroma_floor > 0:
+            raise InputError(f"residual floor_grey and chroma_floor must be > 0, got {self.floor_grey}, "
+                             f"{self.chroma_floor}")
         if self.box_px < 1 or self.min_pixels < 1 or self.reach_steps < 1:
             raise InputError(f"residual box_px, min_pixels and reach_steps must be >= 1, got {self.box_px}, "
                              f"{self.min_pixels}, {self.reach_steps}")
 
 
 def unmatched_pixels(cur: np.ndarray, matched: np.ndarray, usable: np.ndarray, inside: np.ndarray,
-                     config: ResidualConfig, rain_share: float = 0.0) -> np.ndarray:
-    """Pixels of ``cur`` the flow-warped reference ``matched`` (same shape, grey) does not match (H×W bool).
+                     config: ResidualConfig, rain_share: float = 0.0, floor_grey: Optional[float] = None
+                     ) -> np.ndarray:
+    """Pixels of ``cur`` the flow-warped reference ``matched`` (same shape, one channel) does not match (H×W bool).
 
     ``usable``: pixels whose residual sets the scale and the gain (matched, textured); ``inside``: pixels the
     reference saw (elsewhere the residual is no evidence and nothing is unmatched); ``rain_share``: the share of
-    the window the rain filter found to be rain.
+    the window the rain filter found to be rain; ``floor_grey``: the noise floor (default ``config.floor_grey``).
     """
     out = np.zeros(cur.shape, bool)
     usable = usable & inside
@@ -81,8 +88,9 @@ def unmatched_pixels(cur: np.ndarray, matched: np.ndarray, usable: np.ndarray, i
     diff = np.where(inside, np.abs(c - (gain * m + offset)), 0.0).astype(np.float32)
     grad = np.asarray(cv2.magnitude(cv2.Sobel(c, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(c, cv2.CV_32F, 0, 1, ksize=3)),
                       np.float32) / np.float32(8.0)      # grey levels per pixel (the 3×3 Sobel's weights sum to 8)
+    floor = config.floor_grey if floor_grey is None else floor_grey
     rel = cv2.boxFilter(diff, -1, box, borderType=cv2.BORDER_REFLECT) / (
-        config.floor_grey + cv2.boxFilter(grad, -1, box, borderType=cv2.BORDER_REFLECT))
+        floor + cv2.boxFilter(grad, -1, box, borderType=cv2.BORDER_REFLECT))
     out[...] = inside & (rel > config.ratio * float(np.median(rel[sample])))
     return out
 
