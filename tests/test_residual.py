@@ -138,7 +138,8 @@ def test_a_person_of_the_grass_s_grey_is_unmatched_in_colour_only():
     config = ResidualConfig()
     assert not unmatched_pixels(grey_c, grey_g, everywhere, everywhere, config)[50:60, 80:84].any()
     maker = ChromaMaker(np.array([[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]]), None, (120, 160))
-    window, still = (slice(0, 120), slice(0, 160)), np.zeros((120, 160, 2), np.float32)
+    yy, xx = np.mgrid[0:120, 0:160].astype(np.float32)
+    window, still = (slice(0, 120), slice(0, 160)), (xx, yy)      # no flow: each pixel matches itself
     odd = chroma_unmatched(maker(cur), maker(grass), np.eye(3), window, still, everywhere, everywhere, config)
     assert odd[50:60, 80:84].any()
     odd[46:64, 76:88] = False

@@ -49,20 +49,19 @@ class ChromaMaker:
 
 
 def chroma_unmatched(cur_half: np.ndarray, ref_half: np.ndarray, hom: np.ndarray, window: tuple[slice, slice],
-                     flow: np.ndarray, usable: np.ndarray, inside: np.ndarray, config: ResidualConfig,
-                     rain_share: float = 0.0) -> np.ndarray:
+                     to_ref: tuple[np.ndarray, np.ndarray], usable: np.ndarray, inside: np.ndarray,
+                     config: ResidualConfig, rain_share: float = 0.0) -> np.ndarray:
     """Pixels of the current ``window`` whose chroma the flow-warped keyframe's does not match (H×W bool).
 
     ``cur_half``, ``ref_half``: half-size Cr, Cb of the current frame and the keyframe; ``hom``: the plane
-    homography (current frame pixel -> keyframe pixel, full size); ``flow``: DIS's flow on the window (current ->
-    plane-warped keyframe); ``usable``, ``inside``: as for residual.unmatched_pixels.
+    homography (current frame pixel -> keyframe pixel, full size); ``to_ref``: the grey flow's remap maps (x, y of
+    each window pixel's match in the plane-warped window, as the grey residual uses them); ``usable``, ``inside``:
+    as for residual.unmatched_pixels.
     """
-    rs, cs = window
     cur = warp_window(cur_half, _TO_HALF, window)               # both at the window's full-size pixels
     ref = warp_window(ref_half, _TO_HALF @ hom, window)
-    yy, xx = np.mgrid[0:flow.shape[0], 0:flow.shape[1]].astype(np.float32)
-    matched = cv2.remap(ref, xx + flow[..., 0], yy + flow[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    out = np.zeros(flow.shape[:2], bool)
+    matched = cv2.remap(ref, to_ref[0], to_ref[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    out = np.zeros(cur.shape[:2], bool)
     for ch in range(2):
         out |= unmatched_pixels(np.ascontiguousarray(cur[..., ch]), np.ascontiguousarray(matched[..., ch]), usable,
                                 inside, config, rain_share, floor_grey=config.chroma_floor)

@@ -99,7 +99,6 @@ class MotionStage:
         self.position_ned_m: Optional[np.ndarray] = None  # where the last frame was placed (odometry or NED)
         self._odometry = ImageOdometry(config, self.k_cv)  # places frames without a telemetry position
         self._chroma = ChromaMaker(self.k_cv, i.dist, (h, w)) if config.residual.colour else None   # fusion.chroma
-        self._cur_chroma: Optional[np.ndarray] = None      # this frame's, for the residual check (fusion.chroma)
 
     @property
     def keyframes(self) -> tuple[Keyframe, ...]:
@@ -176,7 +175,7 @@ class MotionStage:
             self.last_reason = f"height above ground {pose.agl_m} m unusable (need >= {cfg.min_agl_m} m)"
             return None
         grey = self.grey(image)
-        self._cur_chroma = None if self._chroma is None else self._chroma(image)
+        chroma = None if self._chroma is None else self._chroma(image)     # half-size Cr, Cb (fusion.chroma)
         prune_keyframes(self._history, time_s, cfg.history_s)
         source = POSE_TELEMETRY if np.all(np.isfinite(pose.position_ned_m)) else POSE_IMAGE
         self._odometry.estimate, self.last_reason, restarted = None, "", None
@@ -200,7 +199,7 @@ class MotionStage:
             located, est = self._odometry.locate(grey, replace(pose, agl_m=raw_agl), ref)   # the pair, directly
             pose = replace(pose, position_ned_m=located.position_ned_m)
             if est.ok:
-                result = self._measure(grey, pose, ref, time_s, window, est)
+                result = self._measure(grey, chroma, pose, ref, time_s, window, est)
             else:
                 self.last_reason = est.describe()
         elif ref is not None and not self._moved_as_posed(grey, pose, window):
@@ -209,11 +208,11 @@ class MotionStage:
                                 "that does not belong to these frames)")
             return None
         elif ref is not None:
-            result = self._measure(grey, pose, ref, time_s, window)
+            result = self._measure(grey, chroma, pose, ref, time_s, window)
         self.position_ned_m = pose.position_ned_m.copy()
         # An anchored image position is in the telemetry's frame: a position dropout, not a new frame.
         store_keyframe(self._history, Keyframe(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source,
-                                               raw_agl, self._cur_chroma), cfg)
+                                               raw_agl, chroma), cfg)
         if restarted and window is not None:     # (the ring is empty: "no earlier frame yet" says less)
             self.last_reason = f"odometry started over: {restarted}"
         self.last = result
@@ -266,7 +265,7 @@ class MotionStage:
             self.last_reason = reason
         return ref, det
 
-    def _measure(self, grey: np.ndarray, pose: CameraPose, ref: Keyframe, time_s: float,
+    def _measure(self, grey: np.ndarray, chroma: Optional[np.ndarray], pose: CameraPose, ref: Keyframe, time_s: float,
                  window: tuple[slice, slice], image_pose: Optional[ImagePose] = None) -> Optional[ParallaxResult]:
         cfg = self.config
         rs, cs = window
@@ -289,7 +288,8 @@ class MotionStage:
         flow = np.asarray(self._dis.calc(cur, wrp, None))  # type: ignore[call-overload]
         xx, yy = self._pix[0][rs, cs], self._pix[1][rs, cs]
         mx, my = xx + flow[..., 0], yy + flow[..., 1]
-        matched = cv2.remap(wrp, mx - cs.start, my - rs.start, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        to_ref = (mx - cs.start, my - rs.start)          # where each window pixel's match lies in the warped window
+        matched = cv2.remap(wrp, *to_ref, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         photo_ok = np.abs(cur.astype(np.int16) - matched.astype(np.int16)) <= cfg.max_photometric_error
         # Where the matched point lies in the reference image (pixel-centre convention), then normalised.
         qx = hom[0, 0] * mx + hom[0, 1] * my + hom[0, 2]
@@ -383,8 +383,8 @@ class MotionStage:
         detectable = np.where(reliable & resolved, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
         out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
         odd = unmatched_pixels(cur, matched, matched_ok & tex, near & in_ref, cfg.residual, rain)
-        if ref.chroma is not None and self._cur_chroma is not None:
-            odd |= chroma_unmatched(self._cur_chroma, ref.chroma, hom, window, flow, matched_ok & tex, near & in_ref,
+        if ref.chroma is not None and chroma is not None:
+            odd |= chroma_unmatched(chroma, ref.chroma, hom, window, to_ref, matched_ok & tex, near & in_ref,
                                     cfg.residual, rain)
         unmatched = ray_footprints(pose, xc[:, odd], np.nan_to_num(ground[odd]), cfg.residual)
         baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))

@@ -211,13 +211,18 @@ class GeometryGrid:
             high = np.isfinite(det) & (dev >= 0.5 * self.obstacle_height_m) & (dev >= det)
         return det, high
 
+    def _cell_index(self, north_m: np.ndarray, east_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rows, columns, inside the grid) of the cells holding points north, east (local NED)."""
+        scale = 1.0 / self.cell_m
+        r = np.floor((north_m - self.north0_m) * scale).astype(np.int64)
+        c = np.floor((east_m - self.east0_m) * scale).astype(np.int64)
+        return r, c, (r >= 0) & (r < self.size) & (c >= 0) & (c < self.size)
+
     def _cells_of(self, ne_m: Optional[np.ndarray]) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """(rows, columns) of the grid cells holding north, east points (N×2; None: none inside the grid)."""
         if ne_m is None or len(ne_m) == 0:
             return None
-        r = np.floor((ne_m[:, 0] - self.north0_m) / self.cell_m).astype(np.int64)
-        c = np.floor((ne_m[:, 1] - self.east0_m) / self.cell_m).astype(np.int64)
-        inside = (r >= 0) & (r < self.size) & (c >= 0) & (c < self.size)
+        r, c, inside = self._cell_index(ne_m[:, 0], ne_m[:, 1])
         return (r[inside], c[inside]) if inside.any() else None
 
     def _frame_cells(self, result: ParallaxResult
@@ -228,10 +233,7 @@ class GeometryGrid:
         ok = np.isfinite(ned[0])
         if not ok.any():
             return None
-        scale = 1.0 / self.cell_m
-        r = np.floor((ned[0][ok] - self.north0_m) * scale).astype(np.int64)
-        c = np.floor((ned[1][ok] - self.east0_m) * scale).astype(np.int64)
-        inside = (r >= 0) & (r < self.size) & (c >= 0) & (c < self.size)
+        r, c, inside = self._cell_index(ned[0][ok], ned[1][ok])
         if not inside.any():
             return None
         r, c = r[inside], c[inside]
