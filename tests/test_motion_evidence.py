@@ -78,6 +78,35 @@ def test_no_evidence_does_not_revoke_but_unexplained_pixels_do():
     assert not grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 0.6).clear[cell]
 
 
+def test_a_pair_too_coarse_for_a_thin_wall_does_not_confirm_what_a_finer_one_does():
+    """Detecting 0.3 m where the flow's patch is three times wider than a thin wall (thin factor 3): a wall
+    there would read at a third of its height, so the pair needs 0.3 × 3 = 0.9 m <= 0.5 m to confirm; it
+    does not, nor do ten such pairs fused. Where the patch is narrower (factor 1) the same pair confirms."""
+    from dataclasses import replace
+
+    shape = (20, 20)
+    zeros, none = np.zeros(shape), np.zeros(shape, bool)
+    coarse, fine = _grid(), _grid()
+    for k in range(10):
+        r = _result(zeros, np.full(shape, 0.3), none, 0.2 * k)
+        coarse.add(replace(r, thin_factor=np.full(shape, 3.0, np.float32)))
+        fine.add(replace(r, thin_factor=np.ones(shape, np.float32)))
+    cell = _cell(coarse, 7.6, 7.6)
+    for grid, clear in ((coarse, False), (fine, True)):
+        view = grid.view(grid.north0_m, grid.east0_m, (grid.size, grid.size), 1.8)
+        assert view.clear[cell] == clear and not view.obstacle[cell]
+        assert view.detectable_m[cell] <= 0.3          # what it could detect of a wide obstacle is the same
+
+
+@pytest.mark.parametrize("value", [-0.1, math.nan])
+def test_thin_obstacle_width_is_checked(value):
+    from edge_landing.runtime.core.errors import InputError
+
+    with pytest.raises(InputError, match="thin_obstacle_m"):
+        MotionConfig(thin_obstacle_m=value)
+    assert MotionConfig(thin_obstacle_m=0.0).thin_obstacle_m == 0.0          # 0: off
+
+
 def test_an_outlier_pixel_is_not_an_obstacle_a_standing_thing_is_and_grows_after_the_vote():
     grid = _grid()
     shape = (20, 20)

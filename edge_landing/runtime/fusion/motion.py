@@ -54,6 +54,7 @@ from edge_landing.runtime.fusion.parallax import (
     ned_points,
     parallax_height,
     plane_homography,
+    thin_factor,
 )
 from edge_landing.runtime.fusion.plane_sweep import sweep_plane
 from edge_landing.runtime.fusion.residual import ray_footprints, unmatched_pixels
@@ -364,12 +365,12 @@ class MotionStage:
             margin = 1.0 / max(1e-3, 1.0 - cfg.detect_sigmas * image_pose.scale_sigma_rel)
             sigma0 = np.hypot(sigma0, sigma_pose) * margin
         height = np.where(reliable, local, np.nan).astype(np.float32)
-        patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)
-        rng = np.sqrt(np.sum((ned - pose.position_ned_m[:, None, None]) ** 2, axis=0))
+        patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)   # its footprint on the ground:
+        footprint = patch_px * np.sqrt(np.sum((ned - pose.position_ned_m[:, None, None]) ** 2, axis=0)) / f
         # A textureless pixel, or one whose texture is only the sensor's noise (murky water), like one whose
         # patch is too large, may report an obstacle but not confirm: its flow is its neighbours' (a smooth
         # wall's face still reads partly high; a blank image or a pond next to its bank reads level).
-        resolved = (patch_px * rng / f <= cfg.max_patch_footprint_m) & tex & beyond_noise
+        resolved = (footprint <= cfg.max_patch_footprint_m) & tex & beyond_noise
         # An edge along the epipolar lines slides along itself: its parallax is not seen (image_checks).
         with np.errstate(invalid="ignore"):
             standing = reliable & (np.abs(local) >= cfg.checks.outline_min_m) & (np.abs(local) >= cfg.detect_sigmas * sigma0)
@@ -397,4 +398,4 @@ class MotionStage:
                               time_s - ref.time_s, fit, noise_px, near & in_ref & np.isfinite(hgt) & ~explained,
                               POSE_TELEMETRY if image_pose is None else POSE_IMAGE,
                               0.0 if image_pose is None else image_pose.sigma_m, rain,
-                              sweep.ground_m - sweep.level_m, unmatched)
+                              sweep.ground_m - sweep.level_m, unmatched, thin_factor(footprint, cfg.thin_obstacle_m))

@@ -65,6 +65,11 @@ class MotionConfig:
     # (patch px × range / f) reads at a fraction of its height (1.6 m gaps between packed cars vanished at
     # 1.9 m footprint). Pixels with a larger footprint still report obstacles but cannot confirm.
     max_patch_footprint_m: float = 1.5
+    # An obstacle narrower than that footprint reads at about 1.2 × its width / footprint of its height (a 0.25 m
+    # garden wall at 0.93 m: a third). A pixel confirms only what an obstacle thin_obstacle_m / 1.2 across (2/3 m:
+    # a crate, a small bush) would have shown: its detectable height counts footprint / thin_obstacle_m times,
+    # at least once. Thinner walls and posts are seen only where the footprint is small enough. 0: off.
+    thin_obstacle_m: float = 0.8
     min_overlap: float = 0.5             # share of probe points the reference frame must see
     max_photometric_error: float = 24.0  # grey levels: larger residual after flow = no evidence (occlusion)
     max_cross_parallax_px: float = 1.5   # residual across the epipolar direction beyond this = no evidence
@@ -92,8 +97,9 @@ class MotionConfig:
                      "focus_preference"):
             if not getattr(self, name) > 0:
                 raise InputError(f"motion {name} must be > 0, got {getattr(self, name)}")
-        if not self.overhang_check_m >= 0:
-            raise InputError(f"motion overhang_check_m must be >= 0, got {self.overhang_check_m}")
+        for name in ("overhang_check_m", "thin_obstacle_m"):
+            if not getattr(self, name) >= 0:
+                raise InputError(f"motion {name} must be >= 0, got {getattr(self, name)}")
         if self.max_frames < 2:
             raise InputError(f"motion max_frames must be at least 2, got {self.max_frames}")
         if not 0 < self.min_overlap <= 1:
@@ -132,3 +138,6 @@ class ParallaxResult:
     # North, east (N×2, local NED) where something the flow did not match may stand: the rays of pixels too
     # thin for the flow, from the ground up to a person's height (fusion.residual). Obstacle evidence only.
     unmatched_ne_m: Optional[np.ndarray] = None
+    # Per pixel, how many times its detectable height a thin obstacle (MotionConfig.thin_obstacle_m wide) must
+    # stand to read as high (the patch's footprint over that width, at least 1). What confirmation goes by.
+    thin_factor: Optional[np.ndarray] = None

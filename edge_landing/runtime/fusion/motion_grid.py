@@ -164,7 +164,7 @@ class GeometryGrid:
         frame = self._frame_cells(result)
         if frame is None:
             return 0
-        r0, c0, det, high, suspect, mean_h, mean_down, unmatched = frame
+        r0, c0, det, high, suspect, mean_h, mean_down, unmatched, thin = frame
         win = (slice(r0, r0 + det.shape[0]), slice(c0, c0 + det.shape[1]))
         r1, c1 = r0 + det.shape[0], c0 + det.shape[1]
         box = self._box
@@ -189,8 +189,10 @@ class GeometryGrid:
         # must not renew what the pairs able to see one confirmed seconds before. Not the credit's own cap
         # (1.5×): in heavy rain every moving pair detects 0.7-1.5 m, and confirmation rests on renewing by them.
         informative = det <= self.renew_factor * self.obstacle_height_m
-        credit = (fused_det <= self.obstacle_height_m) & (self._w[1][win] < 0.5) & informative
-        confirm = measured & ((det <= self.obstacle_height_m) | credit) & ~fused_high & ~high & ~suspect
+        # A thin wall reads at a fraction of its height where the flow's patch is wider than it (``thin``: how
+        # many times): this frame confirms only what it could have seen of one (MotionConfig.thin_obstacle_m).
+        credit = (fused_det * thin <= self.obstacle_height_m) & (self._w[1][win] < 0.5) & informative
+        confirm = measured & ((det * thin <= self.obstacle_height_m) | credit) & ~fused_high & ~high & ~suspect
         self._clear_t[win][confirm] = t
         self._clear_t[win][(high | suspect) & ~confirm] = -np.inf
         self._clear_base[win][confirm] = np.float32(result.baseline_m)
@@ -226,9 +228,10 @@ class GeometryGrid:
         return (r[inside], c[inside]) if inside.any() else None
 
     def _frame_cells(self, result: ParallaxResult
-                     ) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """(row0, col0, detectable, high, suspect, mean height, mean NED down, unmatched per cell) on the bounding
-        box of this frame's cells."""
+                     ) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                         np.ndarray]]:
+        """(row0, col0, detectable, high, suspect, mean height, mean NED down, unmatched, thin factor per cell) on
+        the bounding box of this frame's cells."""
         ned = result.ned_m
         ok = np.isfinite(ned[0])
         if not ok.any():
@@ -256,6 +259,9 @@ class GeometryGrid:
         n_unrel = np.bincount(idx[unexplained_px & ~measured_px], minlength=n)
         worst = np.full(n, -np.inf, np.float32)
         np.maximum.at(worst, idx[measured_px], det[measured_px])   # inf when a pixel of the cell is unresolved
+        thin = np.ones(n, np.float32)
+        if result.thin_factor is not None:
+            np.maximum.at(thin, idx[measured_px], result.thin_factor[ok][inside][measured_px])
         with np.errstate(invalid="ignore"):
             # Both signs: a landing site must be flat, and a drop (a gap between packed cars seen as the
             # "ground" at their roofs, a roof's edge, a ditch) is as disqualifying as something standing up.
@@ -283,7 +289,7 @@ class GeometryGrid:
             mean_h = (np.bincount(idx[measured_px], weights=hgt[measured_px], minlength=n) / n_rel).reshape(rows, cols)
             mean_down = (np.bincount(idx[measured_px], weights=down[measured_px], minlength=n) / n_rel
                          ).reshape(rows, cols).astype(np.float32)
-        return r0, c0, det_c, high, suspect, mean_h, mean_down, unmatched
+        return r0, c0, det_c, high, suspect, mean_h, mean_down, unmatched, thin.reshape(rows, cols)
 
     def view(self, north0_m: float, east0_m: float, shape: tuple[int, int], now_s: float) -> GeometryView:
         """The evidence on a window of cells whose corner is (north0, east0) (cells outside: no evidence).

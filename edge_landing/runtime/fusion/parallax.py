@@ -209,3 +209,12 @@ def column_seen(pose: CameraPose, k_cv: np.ndarray, origin_uv: tuple[int, int], 
         seen &= inside & ~(meas[flat] & short)
     out: np.ndarray = seen.reshape(h, w)
     return out
+
+
+def thin_factor(footprint_m: np.ndarray, thin_m: float) -> Optional[np.ndarray]:
+    """How many times its detectable height an obstacle ``thin_m`` wide must stand to read as high, per pixel:
+    the flow's patch footprint on the ground over that width, at least 1 (None: ``thin_m`` 0, not assumed)."""
+    if thin_m <= 0:
+        return None
+    with np.errstate(invalid="ignore"):
+        return np.maximum(footprint_m / thin_m, 1.0).astype(np.float32)
