@@ -58,6 +58,8 @@ def chroma_unmatched(cur_half: np.ndarray, ref_half: np.ndarray, hom: np.ndarray
     each window pixel's match in the plane-warped window, as the grey residual uses them); ``usable``, ``inside``:
     as for residual.unmatched_pixels.
     """
+    if not config.checks(rain_share):                           # (before the warps: nothing to judge)
+        return np.zeros(usable.shape, bool)
     cur = warp_window(cur_half, _TO_HALF, window)               # both at the window's full-size pixels
     ref = warp_window(ref_half, _TO_HALF @ hom, window)
     matched = cv2.remap(ref, to_ref[0], to_ref[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -66,9 +66,10 @@ class MotionConfig:
     # 1.9 m footprint). Pixels with a larger footprint still report obstacles but cannot confirm.
     max_patch_footprint_m: float = 1.5
     # An obstacle narrower than that footprint reads at about 1.2 × its width / footprint of its height (a 0.25 m
-    # garden wall at 0.93 m: a third). A pixel confirms only what an obstacle thin_obstacle_m / 1.2 across (2/3 m:
+    # garden wall at 0.93 m: a third). A cell confirms only what an obstacle thin_obstacle_m / 1.2 across (2/3 m:
     # a crate, a small bush) would have shown: its detectable height counts footprint / thin_obstacle_m times,
-    # at least once. Thinner walls and posts are seen only where the footprint is small enough. 0: off.
+    # at least once (its pixels' largest). Thinner walls and posts are seen only where the footprint is small
+    # enough. 0: off.
     thin_obstacle_m: float = 0.8
     min_overlap: float = 0.5             # share of probe points the reference frame must see
     max_photometric_error: float = 24.0  # grey levels: larger residual after flow = no evidence (occlusion)

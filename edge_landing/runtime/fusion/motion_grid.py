@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import cv2
 import numpy as np
@@ -40,6 +40,20 @@ import numpy as np
 from edge_landing.runtime.fusion.geometry_memo import ViewMemo, _level_steps, steps_at_cut_sides
 from edge_landing.runtime.fusion.grid import recentre
 from edge_landing.runtime.fusion.motion import ParallaxResult
+
+
+class _FrameCells(NamedTuple):
+    """One frame's evidence per cell on the bounding box of its cells, whose corner is grid cell (row0, col0)."""
+
+    row0: int
+    col0: int
+    detectable: np.ndarray
+    high: np.ndarray
+    suspect: np.ndarray
+    mean_h: np.ndarray
+    mean_down: np.ndarray
+    unmatched: np.ndarray       # a ray the flow left unmatched crosses it (fusion.residual)
+    thin: np.ndarray            # the largest thin-obstacle factor of its pixels (MotionConfig.thin_obstacle_m)
 
 
 @dataclass(frozen=True)
@@ -227,11 +241,8 @@ class GeometryGrid:
         r, c, inside = self._cell_index(ne_m[:, 0], ne_m[:, 1])
         return (r[inside], c[inside]) if inside.any() else None
 
-    def _frame_cells(self, result: ParallaxResult
-                     ) -> Optional[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                         np.ndarray]]:
-        """(row0, col0, detectable, high, suspect, mean height, mean NED down, unmatched, thin factor per cell) on
-        the bounding box of this frame's cells."""
+    def _frame_cells(self, result: ParallaxResult) -> Optional[_FrameCells]:
+        """This frame's evidence per cell on the bounding box of its cells (None: no cell inside the grid)."""
         ned = result.ned_m
         ok = np.isfinite(ned[0])
         if not ok.any():
@@ -289,7 +300,7 @@ class GeometryGrid:
             mean_h = (np.bincount(idx[measured_px], weights=hgt[measured_px], minlength=n) / n_rel).reshape(rows, cols)
             mean_down = (np.bincount(idx[measured_px], weights=down[measured_px], minlength=n) / n_rel
                          ).reshape(rows, cols).astype(np.float32)
-        return r0, c0, det_c, high, suspect, mean_h, mean_down, unmatched, thin.reshape(rows, cols)
+        return _FrameCells(r0, c0, det_c, high, suspect, mean_h, mean_down, unmatched, thin.reshape(rows, cols))
 
     def view(self, north0_m: float, east0_m: float, shape: tuple[int, int], now_s: float) -> GeometryView:
         """The evidence on a window of cells whose corner is (north0, east0) (cells outside: no evidence).

@@ -48,6 +48,10 @@ class ResidualConfig:
     reach_m: float = 2.0        # metres above the ground an unmatched pixel may show (a standing person)
     reach_steps: int = 9        # points along its ray up to there (0.25 m apart in height)
 
+    def checks(self, rain_share: float) -> bool:
+        """Whether a pair whose rain filter found ``rain_share`` of its window to be rain is checked at all."""
+        return self.ratio > 0 and rain_share <= self.max_rain_share
+
     def __post_init__(self) -> None:
         if not self.ratio >= 0 or not self.reach_m >= 0 or not self.max_rain_share >= 0:
             raise InputError(f"residual ratio, reach_m and max_rain_share must be >= 0, got {self.ratio}, "
@@ -71,7 +75,7 @@ def unmatched_pixels(cur: np.ndarray, matched: np.ndarray, usable: np.ndarray, i
     """
     out = np.zeros(cur.shape, bool)
     usable = usable & inside
-    if config.ratio <= 0 or rain_share > config.max_rain_share or int(usable.sum()) < config.min_pixels:
+    if not config.checks(rain_share) or int(usable.sum()) < config.min_pixels:
         return out
     c, m = cur.astype(np.float32), matched.astype(np.float32)
     # The gain and the median from every other pixel each way: a quarter of the work, and the statistics of tens
