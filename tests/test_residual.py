@@ -48,14 +48,15 @@ def test_pixels_the_reference_did_not_see_are_never_unmatched_and_the_check_can_
     inside[:, :60], usable[:, :40] = True, True
     u8 = (cur.astype(np.uint8), matched.astype(np.uint8))
     odd = unmatched_pixels(*u8, usable, inside, ResidualConfig())
-    assert odd[:, 45:60].all() and not odd[:, 60:].any()
+    assert odd[:, 45:60].mean() > 0.9 and not odd[:, 60:].any() and not odd[:, :38].any()
     assert not unmatched_pixels(*u8, usable, inside, ResidualConfig(ratio=0.0)).any()
     assert not unmatched_pixels(*u8, usable, inside, ResidualConfig(), rain_share=0.05).any()   # streaks too
     assert not unmatched_pixels(*u8, usable & (np.arange(80) < 1), inside, ResidualConfig()).any()  # too few
 
 
 @pytest.mark.parametrize("field, value", [("ratio", -1.0), ("floor_grey", 0.0), ("box_px", 0), ("reach_m", -0.5),
-                                          ("reach_steps", 0), ("min_pixels", 0), ("max_rain_share", -0.1)])
+                                          ("reach_steps", 0), ("min_pixels", 0), ("max_rain_share", -0.1),
+                                          ("min_median", -0.1)])
 def test_bad_residual_settings_name_the_value(field, value):
     with pytest.raises(InputError, match=field):
         ResidualConfig(**{field: value})
@@ -145,3 +146,21 @@ def test_a_person_of_the_grass_s_grey_is_unmatched_in_colour_only():
     odd[46:64, 76:88] = False
     assert not odd.any()
     assert maker(grey_c) is None                              # a grey camera: no colour to compare
+
+
+def test_ground_of_one_colour_is_not_unmatched_by_its_quantisation():
+    """Asphalt's chroma is one level everywhere: its residual's median is ~0, and 4 x that took the odd level of
+    rounding for a mismatch on a fifth of urban windows (urban 7303: every target lost) until the median was
+    floored (``min_median``). A real mismatch (a person's colour, 15 levels) still stands out."""
+    rng = np.random.default_rng(5)
+    cur = np.full((60, 80), 128, np.uint8)
+    flips = rng.random(cur.shape) < 0.03                       # rounding: a level off here and there
+    matched = np.where(flips, 129, 128).astype(np.uint8)
+    cur[20:25, 40:42] = 143
+    everywhere = np.ones(cur.shape, bool)
+    odd = unmatched_pixels(cur, matched, everywhere, everywhere, ResidualConfig(), floor_grey=2.0)
+    assert odd[20:25, 40:42].any()
+    odd[18:27, 38:44] = False
+    assert not odd.any()
+    floorless = unmatched_pixels(cur, matched, everywhere, everywhere, ResidualConfig(min_median=0.0), floor_grey=2.0)
+    assert floorless.mean() > 0.02                             # what the floor prevents

@@ -11,8 +11,9 @@ Flow errors leave a residual where the image has texture (interpolation, DIS's s
 gradient), and sensor noise everywhere. So the residual is judged against both: a pixel is *unmatched* where the
 mean of ``|current - matched reference|`` over a ``box_px`` box, divided by ``floor_grey`` plus the mean
 gradient magnitude there (about "how many pixels off the flow is"), exceeds ``ratio`` × the window's median of
-the same. The reference's gain and offset are fitted to the current image first (white balance and exposure
-differ between frames). Rain streaks are new in every frame and unmatched too: a pair whose rain filter found
+the same (at least ``min_median``: on ground of one colour the chroma's median is the rounding's). The
+reference's gain and offset are fitted to the current image first (white balance and exposure differ between
+frames). Rain streaks are new in every frame and unmatched too: a pair whose rain filter found
 rain (fusion.streaks) is not checked. Unmatched pixels are obstacle evidence that votes in the grid
 (fusion.motion_grid): a person is unmatched in most pairs that see them, open ground in few. Never evidence of
 clear ground.
@@ -45,6 +46,9 @@ class ResidualConfig:
     max_rain_share: float = 0.01   # a pair with more of its window found to be rain is not checked
     box_px: int = 3             # the residual is averaged over this box (a person's width at 50 m)
     min_pixels: int = 100       # fewer matched pixels than this: no scale, nothing is unmatched
+    # The window's median is taken as at least this: on ground of one colour (asphalt, concrete) the chroma
+    # residual's median is ~0.01, and 4 × that took quantisation for a mismatch on a fifth of the window.
+    min_median: float = 0.15
     reach_m: float = 2.0        # metres above the ground an unmatched pixel may show (a standing person)
     reach_steps: int = 9        # points along its ray up to there (0.25 m apart in height)
 
@@ -53,9 +57,9 @@ class ResidualConfig:
         return self.ratio > 0 and rain_share <= self.max_rain_share
 
     def __post_init__(self) -> None:
-        if not self.ratio >= 0 or not self.reach_m >= 0 or not self.max_rain_share >= 0:
-            raise InputError(f"residual ratio, reach_m and max_rain_share must be >= 0, got {self.ratio}, "
-                             f"{self.reach_m}, {self.max_rain_share}")
+        if not self.ratio >= 0 or not self.reach_m >= 0 or not self.max_rain_share >= 0 or not self.min_median >= 0:
+            raise InputError(f"residual ratio, reach_m, max_rain_share and min_median must be >= 0, got {self.ratio}, "
+                             f"{self.reach_m}, {self.max_rain_share}, {self.min_median}")
         if not self.floor_grey > 0 or not self.chroma_floor > 0:
             raise InputError(f"residual floor_grey and chroma_floor must be > 0, got {self.floor_grey}, "
                              f"{self.chroma_floor}")
@@ -95,7 +99,7 @@ def unmatched_pixels(cur: np.ndarray, matched: np.ndarray, usable: np.ndarray, i
     floor = config.floor_grey if floor_grey is None else floor_grey
     rel = cv2.boxFilter(diff, -1, box, borderType=cv2.BORDER_REFLECT) / (
         floor + cv2.boxFilter(grad, -1, box, borderType=cv2.BORDER_REFLECT))
-    out[...] = inside & (rel > config.ratio * float(np.median(rel[sample])))
+    out[...] = inside & (rel > config.ratio * max(float(np.median(rel[sample])), config.min_median))
     return out
 
 
