@@ -29,12 +29,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
-from edge_landing.cli.common import CliParser, check_seed, check_threads, output_folder, run_cli
+from edge_landing.benchmarks.lying_model import check_camera_size
+from edge_landing.cli.common import CliParser, check_choice, check_seed, check_threads, output_folder, run_cli
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.io.sources import SimReader
 
-STYLES = ("suburban", "urban", "rural")   # sim.world.Style (rural: held out of training)
-APPROACHES = ("straight", "arc")
 _VALIDATION_SEEDS = {
     "suburban": (1505, 3535, 4646, 5150, 6262, 7101, 7202, 7303, 7373, 7404, 7505, 7606, 7707, 7808, 8282, 9202,
                  9303, 9505, 9606, 9783, 9814),
@@ -57,15 +56,17 @@ class Flight:
 
     @staticmethod
     def parse(text: str, approach: str = "straight") -> Flight:
-        """``STYLE:SEED`` or ``STYLE:SEED:APPROACH`` (the approach defaults to ``approach``)."""
+        """``STYLE:SEED`` or ``STYLE:SEED:APPROACH`` (the approach defaults to ``approach``): the style and
+        approach as ``edge-sim`` takes them (sim.world.Style, sim.flight.Approach)."""
+        from edge_landing.sim.flight import Approach
+        from edge_landing.sim.world import Style
+
         parts = text.split(":")
-        if len(parts) not in (2, 3) or parts[0] not in STYLES or not parts[1].isdigit():
-            raise InputError(f"--flights: '{text}' is not STYLE:SEED[:APPROACH] (style {', '.join(STYLES)}, "
-                             f"seed a whole number >= 0)")
-        app = parts[2] if len(parts) == 3 else approach
-        if app not in APPROACHES:
-            raise InputError(f"--flights: '{text}' names approach '{app}' (expected {' or '.join(APPROACHES)})")
-        return Flight(parts[0], check_seed("--flights", int(parts[1])), app)
+        if len(parts) not in (2, 3) or not parts[1].isdigit():
+            raise InputError(f"--flights: '{text}' is not STYLE:SEED[:APPROACH] (seed a whole number >= 0)")
+        style = check_choice(f"--flights {text}", Style.from_string, parts[0]).value
+        app = check_choice(f"--flights {text}", Approach.from_string, parts[2] if len(parts) == 3 else approach)
+        return Flight(style, check_seed("--flights", int(parts[1])), app.value)
 
 
 def validation_set(approach: str = "straight") -> list[Flight]:
@@ -221,15 +222,15 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--workers", type=int, default=2, help="flights replayed at once (one core each)")
     p.add_no_progress()
     a = p.parse_args(argv)
-    if a.approach not in APPROACHES:
-        raise InputError(f"--approach must be {' or '.join(APPROACHES)}, got '{a.approach}'")
-    flights = (validation_set(a.approach) if a.set else []) + [Flight.parse(t, a.approach) for t in a.flights]
+    from edge_landing.sim.flight import Approach
+
+    approach = check_choice("--approach", Approach.from_string, a.approach).value
+    flights = (validation_set(approach) if a.set else []) + [Flight.parse(t, approach) for t in a.flights]
     if not flights:
         raise InputError("no flights: give --set validation or --flights STYLE:SEED[:APPROACH] ...")
     if a.frames < 10:
         raise InputError(f"--frames must be at least 10, got {a.frames}")
-    if not all(16 <= v <= 4096 for v in a.size):
-        raise InputError(f"--size must be two sizes between 16 and 4096 pixels (W H), got {a.size[0]} {a.size[1]}")
+    check_camera_size(a.size)
     check_threads("--workers", a.workers)
     cfg = SetConfig(tuple(dict.fromkeys(flights)), output_folder(a.out, "the --out folder"), tuple(a.models),
                     a.frames, a.size[0], a.size[1], a.workers)

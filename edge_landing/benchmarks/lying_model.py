@@ -251,6 +251,12 @@ def _summary(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def check_camera_size(size: Sequence[int]) -> None:
+    """``--size W H``: the replay's camera, 16 to 4096 pixels each way."""
+    if not all(16 <= v <= 4096 for v in size):
+        raise InputError(f"--size must be two sizes between 16 and 4096 pixels (W H), got {size[0]} {size[1]}")
+
+
 def _check_args(a: argparse.Namespace) -> None:
     """Every value and both outputs checked before the (long) replay starts."""
     from edge_landing.sim.world import Style
@@ -259,8 +265,7 @@ def _check_args(a: argparse.Namespace) -> None:
     check_seed("--seed", a.seed)
     if a.frames < 1:
         raise InputError(f"--frames must be at least 1, got {a.frames}")
-    if not all(16 <= v <= 4096 for v in a.size):
-        raise InputError(f"--size must be two sizes between 16 and 4096 pixels (W H), got {a.size[0]} {a.size[1]}")
+    check_camera_size(a.size)
     check_number("--obstacle-height", a.obstacle_height, 0.0, 10.0, lo_open=True, unit="metres")
     check_choice("--pose-errors", PoseErrors.from_string, a.pose_errors)
     check_choice("--approach", _approach, a.approach)
