@@ -17,9 +17,10 @@ from edge_landing.runtime.perception.contract import DepthConvention, Layout, Ta
 from edge_landing.runtime.perception.inference import OnnxModel
 
 # Measured on this test's own scenes (suburban seed 101, urban seed 102, both unseen in training, 3 frames at
-# 120×160) when shipped: (horizontal precision, δ1 after one per-scene scale).
-MEASURED = {("edgenet.onnx", "suburban"): (0.920, 0.998), ("edgenet.int8.onnx", "suburban"): (0.922, 0.998),
-            ("edgenet.onnx", "urban"): (0.925, 0.888), ("edgenet.int8.onnx", "urban"): (0.921, 0.861)}
+# 120×160): (horizontal precision, δ1 after one per-scene scale), with edge-sim's landing labels (2026-12-02; by the
+# normals alone, when the model was shipped, the precisions were 0.920, 0.922, 0.925, 0.921).
+MEASURED = {("edgenet.onnx", "suburban"): (0.910, 0.998), ("edgenet.int8.onnx", "suburban"): (0.912, 0.998),
+            ("edgenet.onnx", "urban"): (0.909, 0.888), ("edgenet.int8.onnx", "urban"): (0.906, 0.862)}
 # The random placeholder scored h_precision NaN (never says horizontal) and δ1 0.32 on the suburban scene; the
 # suburban-only model of the first release scored 0.787 and 0.369 on the urban one (it would fail the urban floor).
 FLOORS = {"suburban": (0.75, 0.70), "urban": (0.80, 0.65)}   # (precision, δ1)
@@ -105,13 +106,15 @@ def test_shipped_model_floor_on_unseen_scenes_of_both_styles(name, style, unseen
 # -- the held-out style (issue 14) ------------------------------------------------------------------------
 # edge-sim's rural/industrial style is never used for training or validation (export/datasets.py refuses it):
 # our own zero-shot test. Measured when these floors were set (rural seed 103, 6 frames at 120×160, default
-# camera): (H precision, H base rate, lift, δ1 after one scene scale). The base rate is high (open fields),
-# so the lift, not the precision, says whether the net sees anything: "horizontal everywhere" has lift 0.
+# camera): (H precision, H base rate, lift, δ1 after one scene scale), re-measured 2026-12-02 with the landing
+# labels (trees, hedges, containers and water are "other"). The base rate is high (open fields), so the lift, not
+# the precision, says whether the net sees anything: "horizontal everywhere" has lift 0.
 HELD_OUT_SEED = 103
-HELD_OUT_MEASURED = {"edgenet.onnx": (0.924, 0.841, 0.083, 0.537), "edgenet.int8.onnx": (0.921, 0.841, 0.080, 0.505)}
+HELD_OUT_MEASURED = {"edgenet.onnx": (0.877, 0.796, 0.082, 0.636), "edgenet.int8.onnx": (0.874, 0.796, 0.078, 0.597)}
 # (lift over the base rate, mIoU, δ1 after one scene scale): about half the measured lift (a net calling everything
-# horizontal gets 0), and well under the measured mIoU 0.40 and δ1 0.50-0.54. The issue's goals (lift >= 0.20,
-# δ1 >= 0.70) are not met by this model; see the README's accuracy table (all runs: docs/MEASUREMENTS.md, "The shipped model").
+# horizontal gets 0), under the measured mIoU 0.35 (0.40 with the geometric labels) and well under δ1 0.60-0.64.
+# The issue's goals (lift >= 0.20, δ1 >= 0.70) are not met by this model; see the README's accuracy table
+# (all runs: docs/MEASUREMENTS.md, "The shipped model").
 HELD_OUT_FLOORS = (0.04, 0.30, 0.40)
 
 

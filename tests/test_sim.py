@@ -19,10 +19,10 @@ from edge_landing.runtime.core.camera import (  # noqa: E402
     ned_from_camera,
     up_in_camera,
 )
-from edge_landing.runtime.core.geometry import hvo_from_normals, normals_from_depth  # noqa: E402
+from edge_landing.runtime.core.geometry import HORIZONTAL, OTHER, hvo_from_normals, normals_from_depth  # noqa: E402
 from edge_landing.sim.cli import config_from_args  # noqa: E402
 from edge_landing.sim.cli import main as sim_main  # noqa: E402
-from edge_landing.sim.world import Material  # noqa: E402
+from edge_landing.sim.world import NOT_GROUND, LabelRule, Material  # noqa: E402
 
 H, W = 60, 80
 SEED = 11          # one seed for most tests: each world is built once per process (cached)
@@ -31,8 +31,9 @@ SEED = 11          # one seed for most tests: each world is built once per proce
 @pytest.fixture(scope="module", params=["suburban", "urban"])
 def scene_dir(request, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp(f"sim_{request.param}") / "scene"
+    # The geometric labels: the test below derives them from the depth's normals.
     sim.generate(sim.SimConfig(out=out, frames=4, style=sim.Style.from_string(request.param), seed=SEED,
-                               width=W, height=H), progress=False)
+                               width=W, height=H, labels=LabelRule.GEOMETRY), progress=False)
     return out
 
 
@@ -101,9 +102,41 @@ def test_labels_match_the_recipe_and_sky_is_nan_and_255():
     assert np.all(g.hvo[sky] == 255) and np.all(np.isnan(g.normals[sky])) and np.all(g.material[sky] == 255)
     assert np.all(g.hvo[~sky] != 255) and np.all(g.depth_m[~sky] > 0)
     assert np.mean(out.rgb[sky][:, 2]) > np.mean(out.rgb[sky][:, 0])          # sky is blue-ish
-    assert np.array_equal(g.hvo, hvo_from_normals(g.normals, up_in_camera(Mount(), att)) | (sky * 255).astype(np.uint8))
+    expected = hvo_from_normals(g.normals, up_in_camera(Mount(), att)) | (sky * 255).astype(np.uint8)
+    expected[np.isin(g.material, NOT_GROUND)] = OTHER         # the default (landing) rule: see the test below
+    assert np.array_equal(g.hvo, expected)
     # Normals face the camera.
     assert np.all(np.sum(g.normals[~sky] * Intrinsics.from_hfov(W, H).pixel_rays()[~sky], axis=-1) < 0)
+
+
+def test_trees_cars_clutter_and_water_are_never_horizontal_under_the_landing_rule():
+    """A tree crown's top, a car roof and a pond face up: the paper's geometric rule calls them horizontal, the
+    default landing rule calls them other; every other pixel is labelled the same by both."""
+    world = sim.build_world("suburban", 7101, hazards=True)
+    intr = Intrinsics.from_hfov(160, 120)
+    rules = {rule: sim.Renderer(world, intr, labels=rule) for rule in LabelRule}
+    up_not_ground, n_not_ground = 0, 0
+    for k in range(4):
+        view = sim.random_view(world, np.random.default_rng(100 + k))
+        g = {rule: r.geometry(view.position_ned_m, view.attitude) for rule, r in rules.items()}
+        landing, geometric = g[LabelRule.LANDING], g[LabelRule.GEOMETRY]
+        kind = np.isin(landing.material, NOT_GROUND)
+        assert not np.any(landing.hvo[kind] == HORIZONTAL)
+        assert np.all(landing.hvo[kind] == OTHER)
+        assert np.array_equal(landing.hvo[~kind], geometric.hvo[~kind])
+        up_not_ground += int(np.sum(geometric.hvo[kind] == HORIZONTAL))
+        n_not_ground += int(kind.sum())
+    assert n_not_ground > 500 and up_not_ground > 50, (n_not_ground, up_not_ground)   # not vacuous
+
+
+def test_the_label_rule_is_recorded_and_a_bad_one_is_refused(tmp_path, capsys):
+    out = tmp_path / "geo"
+    assert sim_main([str(out), "--frames", "1", "--width", "40", "--height", "30", "--labels", "geometry",
+                     "--quiet"]) == 0
+    assert Scene(out).meta.generator["labels"] == "geometry"
+    assert sim_main([str(tmp_path / "bad"), "--frames", "1", "--labels", "semantic", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--labels: unsupported label rule 'semantic'" in err[0], err
 
 
 def test_views_are_30_to_90_m_up_with_the_camera_45_degrees_down():

@@ -12,7 +12,7 @@ from edge_landing.runtime.core.errors import InputError
 from .effects import EffectOverrides
 from .flight import Approach
 from .generate import SimConfig, generate
-from .world import Style
+from .world import LabelRule, Style
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,6 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "around the open landing spots (sim/hazards.py)")
     p.add_argument("--people", action="store_true", help="people standing around the open landing spots, 6 per "
                    "spot within 20 m (sim/hazards.py; recorded in scene.json for landing_truth)")
+    p.add_argument("--labels", default="landing", help="HVO labels: landing (default: vegetation, vehicles, clutter, "
+                   "people and water are 'other' whatever their slope) or geometry (from the surface normal alone, "
+                   "as the paper's AirSimNC)")
     p.add_argument("--flight", action="store_true", help="render one landing flight (approach, hover, descent) "
                    "and flight.mp4 instead of random views")
     p.add_argument("--approach", default="straight", help="a flight's approach: straight (default) or arc (bent "
@@ -92,6 +95,7 @@ def config_from_args(argv: Optional[Sequence[str]]) -> tuple[SimConfig, bool]:
     """(configuration, no progress bar) from command-line arguments; bad values raise InputError."""
     args = build_parser().parse_args(argv)
     approach = check_choice("--approach", Approach.from_string, args.approach)
+    labels = check_choice("--labels", LabelRule.from_string, args.labels)
     hfov_deg = args.hfov_deg
     if hfov_deg is None:
         from .randomise import scene_hfov_deg
@@ -100,7 +104,7 @@ def config_from_args(argv: Optional[Sequence[str]]) -> tuple[SimConfig, bool]:
     return SimConfig(out=args.out, frames=args.frames, style=Style.from_string(args.style), seed=args.seed,
                      width=args.width, height=args.height, hfov_deg=hfov_deg, effects=_overrides(args),
                      randomise=args.randomise, hazards=args.hazards, people=args.people,
-                     approach=approach, flight=args.flight, fps=args.fps, preview=args.preview,
+                     approach=approach, labels=labels, flight=args.flight, fps=args.fps, preview=args.preview,
                      write_normals=not args.no_normals, shadow_stride=args.shadow_stride,
                      overwrite=args.overwrite), args.no_progress
 

@@ -30,7 +30,7 @@ from .flight import (
     random_view,
 )
 from .render import Renderer, Rendering
-from .world import WORLD_HALF_SIZE_M, Style, build_world
+from .world import WORLD_HALF_SIZE_M, LabelRule, Style, build_world
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +62,7 @@ class SimConfig:
     hazards: bool = False       # sim.hazards around the landing spots
     people: bool = False        # people standing around them (sim.hazards.people_part)
     approach: Approach = Approach.STRAIGHT   # a flight's approach (sim.flight)
+    labels: LabelRule = LabelRule.LANDING    # how HVO labels are made (sim.world.LabelRule)
 
     def __post_init__(self):
         if self.frames < 1:
@@ -150,7 +151,7 @@ def generator_record(config: SimConfig, world, per_frame: list[dict]) -> dict:
     """Everything needed to regenerate the scene, for scene.json's ``generator``."""
     return {
         "name": "edge-sim", "version": SIM_VERSION, "style": str(config.style), "seed": int(config.seed),
-        "hazards": bool(config.hazards), "people": bool(config.people),
+        "hazards": bool(config.hazards), "people": bool(config.people), "labels": str(config.labels),
         "frames": int(config.frames), "mode": "flight" if config.flight else "views", "fps": float(config.fps),
         "width": config.width, "height": config.height, "hfov_deg": float(config.hfov_deg),
         "elevation_range_m": list(AGL_RANGE_M), "agl": "distance straight down to the first surface",
@@ -182,7 +183,7 @@ def generate(config: SimConfig, progress: bool = True) -> Path:
     meta = SceneMeta(intrinsics=config.intrinsics, mount=Mount(), hvo_thresholds=thresholds)
     writer = SceneWriter(out, meta)            # fails fast on an unwritable folder, before the slow work
     world = build_world(config.style, config.seed, config.hazards, config.people)
-    renderer = Renderer(world, config.intrinsics, meta.mount, thresholds, config.shadow_stride)
+    renderer = Renderer(world, config.intrinsics, meta.mount, thresholds, config.shadow_stride, config.labels)
     if config.randomise:
         from .appearance import sample_palette
 
@@ -241,6 +242,6 @@ def render_sample(config: SimConfig, frame: int, sample: VehicleSample,
     """Render one vehicle sample with the configuration's effects (used by the live camera and tests)."""
     if renderer is None:
         world = build_world(config.style, config.seed, config.hazards, config.people)
-        renderer = Renderer(world, config.intrinsics, Mount(), HvoThresholds(), config.shadow_stride)
+        renderer = Renderer(world, config.intrinsics, Mount(), HvoThresholds(), config.shadow_stride, config.labels)
     return renderer.render(sample.position_ned_m, sample.attitude, frame_effects(config, frame),
                            frame_rng(config.seed, frame, _PURPOSE_SENSOR))

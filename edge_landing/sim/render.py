@@ -19,12 +19,12 @@ from edge_landing.runtime.core.camera import (
     ned_from_camera,
     up_in_camera,
 )
-from edge_landing.runtime.core.geometry import HvoThresholds, hvo_from_normals
+from edge_landing.runtime.core.geometry import OTHER, HvoThresholds, hvo_from_normals
 
 from .effects import Effects, apply_atmosphere, apply_sensor, sky_colour, sun_colour
 from .textures import albedo
 from .water import below_surface, floor_points, fresnel, water_of
-from .world import MISS, Material, World
+from .world import MISS, NOT_GROUND, LabelRule, Material, World
 
 if TYPE_CHECKING:
     from .appearance import Palette
@@ -32,6 +32,8 @@ if TYPE_CHECKING:
 SKY_MATERIAL = 255
 REFLECTANCE = np.zeros(256, np.float32)
 REFLECTANCE[[Material.GLASS, Material.CURTAIN_WALL, Material.CAR_PAINT]] = (0.35, 0.3, 0.08)   # water: sim.water
+_NOT_GROUND = np.zeros(256, bool)
+_NOT_GROUND[list(NOT_GROUND)] = True
 
 
 def _mirrored(dirs: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -67,8 +69,10 @@ class Renderer:
     """Renders one world through one camera model; reuse it for many poses."""
 
     def __init__(self, world: World, intrinsics: Intrinsics, mount: Mount = Mount(),
-                 thresholds: HvoThresholds = HvoThresholds(), shadow_stride: int = 1):
+                 thresholds: HvoThresholds = HvoThresholds(), shadow_stride: int = 1,
+                 labels: LabelRule = LabelRule.LANDING):
         self.world, self.intrinsics, self.mount, self.thresholds = world, intrinsics, mount, thresholds
+        self.labels = LabelRule(labels)
         self.shadow_stride = max(1, int(shadow_stride))
         self.palette: Optional[Palette] = None     # edge-sim --randomise: the scene's material look
         rays = intrinsics.pixel_rays()
@@ -94,6 +98,8 @@ class Renderer:
         normals = n_cam.reshape(h, w, 3)
         hvo = hvo_from_normals(normals, up_in_camera(self.mount, attitude), self.thresholds)
         material = self.world.materials_at(tri, points)
+        if self.labels is LabelRule.LANDING:
+            hvo[_NOT_GROUND[material].reshape(h, w)] = OTHER
         return Geometry(depth_m=t.reshape(h, w).astype(np.float32), normals=normals, hvo=hvo,
                         material=material.reshape(h, w), triangle=tri.reshape(h, w),
                         points_ned=points.reshape(h, w, 3), normals_ned=n_w.reshape(h, w, 3),

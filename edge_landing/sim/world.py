@@ -47,6 +47,25 @@ class Material(IntEnum):
     WATER = 17         # garden pools
 
 
+# What a drone must not land on whatever its surface's slope: a tree crown's or a car roof's top faces up, a
+# pond is level, a person's shoulders too. The "landing" label rule (LabelRule) calls them OTHER.
+NOT_GROUND = (Material.FOLIAGE, Material.TRUNK, Material.CAR_PAINT, Material.GLASS, Material.CLUTTER,
+              Material.WATER)
+
+
+class LabelRule(ChoiceEnum):
+    """How HVO labels are made. GEOMETRY: from the surface normal alone (the paper's AirSimNC and SafeUAV
+    definition). LANDING (default): the same, but vegetation, vehicles, clutter, people and water are OTHER
+    whatever their slope, so that "horizontal" means level ground or built surface a drone may land on."""
+
+    LANDING = "landing"
+    GEOMETRY = "geometry"
+
+    @classmethod
+    def _label(cls) -> str:
+        return "label rule"
+
+
 class Style(ChoiceEnum):
     SUBURBAN = "suburban"
     URBAN = "urban"
