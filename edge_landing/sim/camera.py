@@ -53,7 +53,7 @@ class SimCamera:
         self.world = build_world(style, int(seed))
         self.mount = Mount()
         self.thresholds = HvoThresholds()
-        self.renderer = Renderer(self.world, self.config.intrinsics, self.mount, self.thresholds)
+        self.renderer = Renderer(self.world, self.config.intrinsics, self.mount, self.thresholds, labels=self.config.labels)
         self._plan: list[VehicleSample] = list(vehicle_samples(self.config, self.world))   # same as edge-sim --flight
         self._index = 0
         self._start: Optional[float] = None
