@@ -107,6 +107,7 @@ class RunConfig:
     mav_target_system: Optional[int] = None  # take telemetry only from this system id
     hold_s: float = 20.0                     # a committed spot is re-sent from memory at most this long
     target_hz: float = 20.0                  # LANDING_TARGET at most this often on average (0: no cap)
+    bridge_s: float = 0.2                    # re-send the newest frame's target when none left for this long (0: off)
     telemetry_wait_s: float = 5.0            # with --mav, wait this long for telemetry before the first frame
     vehicle_radius_m: float = 1.0
     margin_m: float = 1.0
@@ -167,6 +168,8 @@ class RunConfig:
             raise InputError("--no-altitude-scale with --mav needs --calibration: without either there is no metric "
                              "depth scale, so no target would ever be sent")
         check_cap_hz(self.target_hz, "--target-hz")
+        if self.bridge_s != 0:   # above ArduPilot's 0.5 s it could not keep its estimator's stream going
+            check_number("--bridge", self.bridge_s, 0.05, 0.45, unit="seconds (0 = off)")
         if self.fusion_hz != 0 and not 10.0 <= self.fusion_hz <= 1000.0:
             raise InputError(f"--fusion-hz must be 0 (every frame) or 10-1000: targets must update at 10 Hz or "
                              f"faster, got {self.fusion_hz}")
@@ -206,6 +209,9 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--target-hz", type=float, default=20.0, help="send LANDING_TARGET at most this often on average "
                    "(default 20; 0: every frame's target): a video file or a fast camera gives a target per frame, "
                    "and ArduPilot only uses the newest (2-1000)")
+    k.add_argument("--bridge", type=float, default=0.2, help="when no target has left for this long (a slow model "
+                   "or camera), re-send the newest frame's sent target at the newest pose, until the next frame is "
+                   "decided or it is 1 s old: ArduPilot needs updates < 0.5 s apart (0.05-0.45; 0: off)")
     k.add_argument("--hold", type=float, default=20.0, help="re-send a committed landing spot from memory for at "
                    "most this many seconds without a confirming frame (it is out of view during the vertical descent)")
     o = p.add_argument_group("output")
@@ -230,7 +236,7 @@ def config_from_args(argv: Optional[Sequence[str]]) -> RunConfig:
                      autopilot=Autopilot.from_string(a.autopilot),
                      autopilot_check=SetupCheck.from_string(a.autopilot_check), mav_sysid=a.mav_sysid, mav_compid=a.mav_compid,
                      mav_key=a.mav_key, mav_target_system=a.mav_target_system, hold_s=a.hold,
-                     target_hz=a.target_hz,
+                     target_hz=a.target_hz, bridge_s=a.bridge,
                      vehicle_radius_m=a.vehicle_radius, margin_m=a.margin, threads=a.threads,
                      hfov_deg=a.hfov, intrinsics=a.intrinsics, mount_pitch_deg=a.mount_pitch, mount_roll_deg=a.mount_roll,
                      mount_yaw_deg=a.mount_yaw, record=a.record, flight_record=a.flight_record,
@@ -344,6 +350,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
         # Telemetry is required (trust rules) whenever there is any: an autopilot link or the source's own.
         has_telemetry = bool(cfg.mav) or own_telemetry
         options = PipelineOptions(cfg.max_frames, cfg.duration_s, overlap=cfg.overlap, fusion_max_hz=cfg.fusion_hz,
+                                  bridge_s=cfg.bridge_s,
                                   world_grid=cfg.grid is GridMode.NED, mount=mount,
                                   continuity=ContinuityConfig(hold_s=cfg.hold_s,
                                                                min_clearance_m=fusion_cfg.required_clearance_m,

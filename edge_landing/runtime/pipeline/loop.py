@@ -5,7 +5,9 @@ second, logs every decision and returns a :class:`RunSummary`. Per-frame code ne
 a link fault or a camera fault becomes an invalid frame or a counted error, and the loop goes on.
 The trust rules of ARCHITECTURE.md §12 are applied here: with a telemetry source, a frame without fresh
 telemetry is not fused and gets no target (its reason says why); a committed spot is re-sent from memory
-(runtime/pipeline/trust.py); telemetry is checked again right before sending.
+(runtime/pipeline/trust.py); telemetry is checked again right before sending. Between frames slower than
+ArduPilot's estimator needs, the newest frame's sent target is re-sent at the newest pose
+(runtime/pipeline/bridge.py).
 """
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ from edge_landing.runtime.core.camera import Mount
 from edge_landing.runtime.core.messages import Frame, Prediction, Target, TelemetryMatch, VehicleState
 from edge_landing.runtime.core.target_frames import aim_at_pose, aimed, target_ned
 from edge_landing.runtime.fusion.result import FusionResult
+from edge_landing.runtime.pipeline.bridge import DEFAULT_PERIOD_S, TargetBridge
 from edge_landing.runtime.pipeline.mount_watch import MountWatch
 from edge_landing.runtime.pipeline.protocols import (
     FrameSource,
@@ -60,6 +63,8 @@ class PipelineOptions:
                                  # no target, so the model keeps the cores while targets still update at this
                                  # rate (§9). A file is read as fast as the loop goes, so which of its frames
                                  # are fused depends on the CPU: leave it 0 for reproducible replays
+    bridge_s: float = DEFAULT_PERIOD_S  # with telemetry: when no target has left for this long, re-send the newest
+                                        # frame's sent target at the newest pose (pipeline/bridge.py); 0 = off
 
 
 class Pipeline:
@@ -86,6 +91,8 @@ class Pipeline:
         self._last_fused_s: Optional[float] = None
         self._clock_lag_s = 0.0                 # the newest frame's Frame.clock_lag_s (its clock against ours)
         self.mount_watch = MountWatch(link.send_status if link is not None else None)
+        self.bridge = TargetBridge(options.bridge_s)
+        self._send_lock = threading.Lock()       # the fusion worker's sends and the bridge's, one at a time
 
     def stop(self, why: str = "request") -> None:
         self.summary.stopped_by = self.summary.stopped_by or why
@@ -96,19 +103,21 @@ class Pipeline:
         start = time.monotonic()
         next_status, last_status = start + opt.status_period_s, start
         status_frames = 0
+        wait_s = min(0.2, opt.bridge_s / 2) if self.bridge.enabled else 0.2
         if opt.overlap:
             self._worker = threading.Thread(target=self._work, name="fusion", daemon=True)
             self._worker.start()
         try:
             while not self.stop_event.is_set():
                 t0 = time.perf_counter()
-                frame = self.grabber.next(timeout_s=0.2)
+                frame = self.grabber.next(timeout_s=wait_s)
                 now = time.monotonic()
                 if frame is not None:
                     s.times.add("wait", time.perf_counter() - t0)
                     self._process(frame)
                     s.frames += 1
                     status_frames += 1
+                self._bridge_gap()
                 if now >= next_status:
                     self._status(status_frames / max(now - last_status, 1e-6))
                     status_frames, next_status, last_status = 0, now + opt.status_period_s, now
@@ -229,13 +238,16 @@ class Pipeline:
             self._announce_telemetry(match)
             if said:
                 self.link.send_status(said[:50], severity=4)
-            target = self._recheck(target, frame.clock_lag_s)
-            target, pose_time_s = self._at_newest_pose(target, match.state)
-            sent, why = self.link.send_target(target, match.state, clock_lag_s=frame.clock_lag_s)
-            if sent:
+            with self._send_lock:
+                target = self._recheck(target, frame.clock_lag_s)
+                target, pose_time_s = self._at_newest_pose(target, match.state)
+                sent, why = self.link.send_target(target, match.state, clock_lag_s=frame.clock_lag_s)
                 now = time.monotonic() - frame.clock_lag_s   # on the frame's clock (Frame.clock_lag_s)
-                s.times.add("capture_to_send", now - frame.capture_time_s)
-                s.times.add("pose_to_send", now - pose_time_s)
+                if sent:
+                    s.times.add("capture_to_send", now - frame.capture_time_s)
+                    s.times.add("pose_to_send", now - pose_time_s)
+                if self.telemetry is not None:
+                    self.bridge.decided(target, match.state, sent, now)
             self._statustext(target)
         s.targets += target.valid
         s.held += target.valid and target.reason.startswith("held")
@@ -255,6 +267,29 @@ class Pipeline:
                                      committed_ned_m=where if in_ned else None,
                                      committed_odometry_m=None if in_ned else where)
             self.decision_log.write(json.dumps(record) + "\n")
+
+    def _bridge_gap(self) -> None:
+        """Between frames: when no target has left for the bridge's period, re-send the newest frame's sent
+        target at the newest pose, through the same checks as a frame's (fresh telemetry, the autopilot's frame
+        unmoved, the link's age limit on its capture time). A refusal ends the bridge until the next frame."""
+        if self.link is None or self.telemetry is None or not self.bridge.enabled:
+            return
+        with self._send_lock:
+            lag = self._clock_lag_s
+            now = time.monotonic() - lag                     # on the frames' clock (Frame.clock_lag_s)
+            due = self.bridge.due(now)
+            if due is None:
+                return
+            target, capture = due
+            target = self._recheck(target, lag)
+            target, pose_time_s = self._at_newest_pose(target, capture)
+            sent, why = self.link.send_target(target, self.telemetry.newest_state(), clock_lag_s=lag)
+            if sent:
+                self.bridge.resent_at(now)
+                self.summary.bridged += 1
+                self.summary.times.add("pose_to_send", now - pose_time_s)
+            elif not why.startswith("rate cap"):
+                self.bridge.clear()
 
     def _recheck(self, target: Target, clock_lag_s: float) -> Target:
         """Right before sending: telemetry must still be fresh (fusion took time since the match); judged on the

@@ -101,6 +101,7 @@ class RunSummary:
     drops: int = 0
     camera_faults: int = 0
     not_fused: int = 0           # frames inferred but not fused (PipelineOptions.fusion_max_hz)
+    bridged: int = 0             # targets re-sent between frames (pipeline/bridge.py), beside the frames' ``sent``
     link: Dict[str, int] = field(default_factory=dict)
     autopilot_setup: Optional[Dict[str, Any]] = None   # the PLND_* parameters read (io.autopilot_setup)
     mount_line: str = ""         # the camera's orientation measured from the images (pipeline.mount_watch)
@@ -171,7 +172,8 @@ class RunSummary:
         rows.append("")
         fused = f" ({self.not_fused} inferred but not fused: --fusion-hz)" if self.not_fused else ""
         rows.append(f"targets {self.targets}/{self.frames} frames{fused} ({self.held} held from memory), LANDING_TARGET sent "
-                    f"{self.sent}, drops {self.drops}, camera faults {self.camera_faults}, link {self.link}, "
+                    f"{self.sent} (+{self.bridged} between frames: --bridge), drops {self.drops}, "
+                    f"camera faults {self.camera_faults}, link {self.link}, "
                     f"rejected telemetry {self.rejected_telemetry}, stopped by {self.stopped_by or 'end'}")
         rows += self.setup_lines()
         if self.mount_line:
