@@ -96,3 +96,16 @@ def textured_scene(path: Path, frames: int, height: int = 32, width: int = 48, s
         writer.write(i, rgb, depth, hvo)
     writer.close()
     return path
+
+
+def quantized_pair(folder: Path, calib_frames: int = 5, eval_frames: int = 3) -> dict:
+    """A tiny depth+HVO FP32 net at 64×96 and its gate-passing INT8 twin (``net.int8.onnx``) in ``folder``."""
+    from edge_landing.export.quantize import QuantizeConfig, quantize
+
+    fp32 = tiny_conv_net(folder / "net.onnx", Task.DEPTH_HVO, height=64, width=96)
+    scene = textured_scene(folder / "scene", calib_frames + eval_frames, height=64, width=96)
+    report = quantize(fp32, folder / "net.int8.onnx", QuantizeConfig(calib_scene=scene, calib_frames=calib_frames,
+                                                                     eval_frames=eval_frames, progress=False,
+                                                                     speed_gate=False))
+    assert report.passed and report.written
+    return {"fp32": fp32, "int8": folder / "net.int8.onnx"}

@@ -9,25 +9,17 @@ pytest.importorskip("openvino")
 
 from edge_landing.cli.common import EXIT_BAD_INPUT
 from edge_landing.cli.run import main
-from edge_landing.export.quantize import QuantizeConfig, quantize
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.perception import runtime_choice as rc
 from edge_landing.runtime.perception.backend import Runtime, RuntimeRequest
-from edge_landing.runtime.perception.contract import Task
 from edge_landing.runtime.perception.inference import OnnxModel, SessionConfig
 from edge_landing.runtime.perception.precision import Precision, ProbeConfig, pick_model
-from tests.quant_models import textured_scene, tiny_conv_net
+from tests.quant_models import quantized_pair
 
 
 @pytest.fixture(scope="module")
 def pair(tmp_path_factory):
-    d = tmp_path_factory.mktemp("runtime")
-    fp32 = tiny_conv_net(d / "net.onnx", Task.DEPTH_HVO, height=64, width=96)
-    scene = textured_scene(d / "scene", 8, height=64, width=96)
-    report = quantize(fp32, d / "net.int8.onnx", QuantizeConfig(calib_scene=scene, calib_frames=5, eval_frames=3,
-                                                                progress=False, speed_gate=False))
-    assert report.passed and report.written
-    return {"fp32": fp32, "int8": d / "net.int8.onnx"}
+    return quantized_pair(tmp_path_factory.mktemp("runtime"))
 
 
 def _probe(tmp_path):

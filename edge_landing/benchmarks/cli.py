@@ -19,7 +19,7 @@ import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 from edge_landing.cli.common import CliParser, check_number, check_threads, output_folder, run_cli
 from edge_landing.evaluation.scene import Scene
@@ -137,6 +137,20 @@ def machine_info() -> dict:
             "onnxruntime": onnxruntime.__version__, "load_average_start": list(os.getloadavg())}
 
 
+def openvino_usable(prepared, threads: int) -> Tuple[Dict[str, Path], List[str]]:
+    """OpenVINO's backend kinds and files that compiled and ran in a child process, and a note per file that did not."""
+    from edge_landing.runtime.perception.openvino_check import runs_in_child
+
+    files, notes = {}, []
+    for kind, label, path in (("openvino", "FP32", prepared.fp32_path), ("openvino-int8", "INT8", prepared.int8_path)):
+        ok, why = runs_in_child(path, threads)
+        if ok:
+            files[kind] = path
+        else:
+            notes.append(f"OpenVINO {label} not timed: {why}")
+    return files, notes
+
+
 def bench_model(prepared, config: BenchConfig, peak_gflops: float) -> rep.BenchRow:
     from .flops import count_macs
     from .peak import matmul_backend, matmul_flop
@@ -150,15 +164,17 @@ def bench_model(prepared, config: BenchConfig, peak_gflops: float) -> rep.BenchR
 
     m, c = prepared.model, prepared.contract
     counts = sorted({1, config.threads}) if config.scaling else [config.threads]
+    # The same two ONNX files on OpenVINO's CPU runtime, each first compiled and run in a child process: a file
+    # OpenVINO crashes on would take the whole run, and every model timed before it, down with it.
+    openvino_files, notes = openvino_usable(prepared, config.threads) if openvino_available() else ({}, [])
     backends = []
     for t in counts:
         backends.append(ort_backend(prepared.fp32_path, c, t, "ort-fp32"))
         backends.append(ort_backend(prepared.int8_path, c, t, "ort-int8"))
         if config.torch:
             backends.append(torch_backend(prepared.module, c, t))
-        if openvino_available():   # the same two ONNX files on OpenVINO's CPU runtime
-            backends.append(openvino_backend(prepared.fp32_path, c, t))
-            backends.append(openvino_backend(prepared.int8_path, c, t, kind="openvino-int8"))
+        for kind, path in openvino_files.items():
+            backends.append(openvino_backend(path, c, t, kind=kind))
     backends.append(matmul_backend(config.threads))
     timings = interleaved(backends, config.speed, desc=f"timing {m.name}")
     probe = timings.pop(f"matmul-peak@{config.threads}")
@@ -170,7 +186,7 @@ def bench_model(prepared, config: BenchConfig, peak_gflops: float) -> rep.BenchR
             ips = {str(t.threads): t.images_per_s for t in timings.values() if t.kind == kind}
             scaling[kind] = {**ips, "speedup": ips[str(counts[-1])] / ips[str(counts[0])]}
     macs = count_macs(prepared.fp32_path)
-    notes = ["random weights (speed only)"] if prepared.contract.source.get("weights") == "random" else []
+    notes += ["random weights (speed only)"] if prepared.contract.source.get("weights") == "random" else []
     if m.peer_note:
         notes.append(m.peer_note)
     if macs.uncounted:

@@ -5,13 +5,16 @@ times OpenVINO's CPU plugin on the same candidate files when openvino is install
 openvino nothing changes. OpenVINO runs the file with its own kernels (an INT8 QDQ file as its own int8
 graph), so the accuracy gate that edge-quantize passed with ONNX Runtime is not assumed to carry over: an
 OpenVINO candidate must first agree with ONNX Runtime on the same file (decoded depth within 5 % on 98 % of the
-pixels, HVO labels on 98 %), on a structured test image. Timings and agreement are cached like the precision
-probe, keyed by the files, the CPU, both runtimes' versions and the threads.
+pixels, HVO labels on 98 %), on a structured test image. Before that, each file is compiled and run once by
+OpenVINO in a child process (``openvino_check``): a file OpenVINO crashes on is refused, not run here. Timings
+and agreement are cached like the precision probe, keyed by the files, the CPU, both runtimes' versions and the
+threads.
 
     choice = pick_runtime(pick_model(path, Precision.AUTO), path, Precision.AUTO, RuntimeRequest.AUTO)
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -24,6 +27,7 @@ from edge_landing.runtime.core.cpu_features import cpu_features
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.perception.backend import Runtime, RuntimeRequest, openvino_available, runtime_version
 from edge_landing.runtime.perception.inference import OnnxModel, SessionConfig, file_sha256
+from edge_landing.runtime.perception.openvino_check import runs_in_child
 from edge_landing.runtime.perception.precision import (
     ModelChoice,
     Precision,
@@ -37,7 +41,7 @@ from edge_landing.runtime.perception.precision import (
     write_cache,
 )
 
-RUNTIME_CACHE_VERSION = 1
+RUNTIME_CACHE_VERSION = 2        # 2: OpenVINO candidates that crashed in the child check have p50 null
 MIN_AGREEMENT = 0.98          # share of pixels: depth within DEPTH_TOLERANCE, and the same HVO label
 DEPTH_TOLERANCE = 0.05
 
@@ -104,10 +108,22 @@ def measure(candidates: List[Candidate], config: ProbeConfig) -> Tuple[Dict[str,
     labels = [c.label for c in candidates]
     if (hit is not None and hit.get("version") == RUNTIME_CACHE_VERSION
             and isinstance(hit.get("p50_s"), dict) and set(hit["p50_s"]) == set(labels)):
-        return {k: float(v) for k, v in hit["p50_s"].items()}, dict(hit.get("agrees", {})), f"cached in {path.parent}"
-    agrees = {c.label: list(agreement(c.path, config.threads)) for c in candidates if c.runtime is Runtime.OPENVINO}
-    p50 = dict(zip(labels, interleaved_p50_s([_runner(c, config.threads) for c in candidates], config)))
-    record = {"version": RUNTIME_CACHE_VERSION, "p50_s": p50, "agrees": agrees, "threads": config.threads,
+        p50 = {k: math.inf if v is None else float(v) for k, v in hit["p50_s"].items()}
+        return p50, dict(hit.get("agrees", {})), f"cached in {path.parent}"
+    agrees: Dict[str, Any] = {}
+    crashed = set()
+    for c in candidates:
+        if c.runtime is Runtime.OPENVINO:
+            runs, why = runs_in_child(c.path, config.threads)
+            agrees[c.label] = list(agreement(c.path, config.threads)) if runs else [False, why]
+            crashed |= set() if runs else {c.label}
+    timed = [c for c in candidates if c.label not in crashed]
+    p50 = {c.label: math.inf for c in candidates}
+    if timed:
+        p50.update(zip([c.label for c in timed], interleaved_p50_s([_runner(c, config.threads) for c in timed],
+                                                                   config)))
+    record = {"version": RUNTIME_CACHE_VERSION, "agrees": agrees, "threads": config.threads,
+              "p50_s": {k: v if math.isfinite(v) else None for k, v in p50.items()},
               "cpu": cpu.to_json(), "files": {c.label: str(c.path) for c in candidates}, "measured_unix_s": time.time()}
     saved = write_cache(path, record)
     return p50, agrees, "probed now" + (f", cached in {path.parent}" if saved else " (cache folder not writable)")
@@ -134,10 +150,11 @@ def pick_runtime(choice: ModelChoice, fp32_path: Path, precision: Precision, req
     p50, agrees, how = measure(candidates, config)
     usable = [c for c in candidates if c.runtime is not Runtime.OPENVINO or agrees.get(c.label, [False])[0]]
     if not usable:
-        raise InputError(f"--runtime openvino with {fp32_path.name}: OpenVINO's outputs differ from ONNX Runtime's "
-                         f"({'; '.join(f'{k}: {v[1]}' for k, v in agrees.items())})")
+        raise InputError(f"--runtime openvino with {fp32_path.name}: OpenVINO's outputs differ from ONNX Runtime's, "
+                         f"or it cannot run the file ({'; '.join(f'{k}: {v[1]}' for k, v in agrees.items())})")
     best = min(usable, key=lambda c: p50[c.label])
-    timed = ", ".join(f"{c.label} {p50[c.label] * 1e3:.1f}" for c in candidates)
+    timed = ", ".join(f"{c.label} {p50[c.label] * 1e3:.1f}" if math.isfinite(p50[c.label]) else f"{c.label} not run"
+                      for c in candidates)
     refused = [f"{k} refused: {v[1]}" for k, v in agrees.items() if not v[0]]
     why = (f"fastest here (p50 ms: {timed}; {' '.join(cpu_features().features) or 'this CPU'}, "
            f"{config.threads} thread(s); {how})" + (f"; {'; '.join(refused)}" if refused else ""))

@@ -1,0 +1,70 @@
+"""Whether OpenVINO can compile and run a model file on this CPU, asked of a child process (ARCHITECTURE.md §9).
+
+OpenVINO's CPU plugin can take the whole process down instead of raising: 2026.4.1 died of SIGSEGV in
+``compile_model`` on DenseDepth's INT8 QDQ file on an AVX2-only AMD EPYC (the FP32 file compiled). A drone's
+runtime probing for the faster runtime, or a benchmark an hour into its run, must not die of a peer's bug, so a
+file is first compiled and run once in a child; only a file that survived that is compiled in this process.
+
+    ok, why = runs_in_child(Path("model.int8.onnx"), threads=2)
+"""
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import Optional, Sequence, Tuple
+
+CHECK_TIMEOUT_S = 300.0      # a large model's first compile takes tens of seconds on 2 cores
+
+
+def runs_in_child(path: Path, threads: int, timeout_s: float = CHECK_TIMEOUT_S) -> Tuple[bool, str]:
+    """(True, "") when a child process compiled ``path`` with OpenVINO and ran it once; else (False, why)."""
+    cmd = [sys.executable, "-m", "edge_landing.runtime.perception.openvino_check", str(path), str(threads)]
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        return False, f"OpenVINO did not compile and run it within {timeout_s:.0f} s"
+    except OSError as exc:
+        return False, f"could not start the OpenVINO check: {exc}"
+    if done.returncode == 0:
+        return True, ""
+    if done.returncode < 0:
+        try:
+            name = signal.Signals(-done.returncode).name
+        except ValueError:
+            name = f"signal {-done.returncode}"
+        return False, f"OpenVINO crashed ({name}) compiling or running it on this CPU"
+    last = (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
+    return False, f"OpenVINO cannot run it: {last[:200]}"
+
+
+def _compile_and_run(path: str, threads: int) -> None:
+    import numpy as np
+    import openvino as ov
+
+    compiled = ov.Core().compile_model(path, "CPU", {"INFERENCE_NUM_THREADS": threads, "PERFORMANCE_HINT": "LATENCY",
+                                                     "NUM_STREAMS": 1, "INFERENCE_PRECISION_HINT": "f32"})
+    ports = list(compiled.inputs)
+    if any(not p.get_partial_shape().is_static for p in ports):
+        return                                    # compiled; nothing fixed to run it on
+    feeds = {p.get_any_name(): np.zeros(list(p.get_shape()), p.get_element_type().to_dtype()) for p in ports}
+    compiled.create_infer_request().infer(feeds)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if len(args) != 2 or not args[1].isdigit() or not Path(args[0]).is_file():
+        print(f"usage: python -m {__name__} MODEL.onnx THREADS (got {args})", file=sys.stderr)
+        return 2
+    try:
+        _compile_and_run(args[0], int(args[1]))
+    except Exception as exc:  # OpenVINO raises its own untyped errors: one line for the parent
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(first, file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
