@@ -61,7 +61,7 @@ def north_at(t_s: float) -> float:
 
 def fly_slowly(assets, tmp_path, monkeypatch, *extra: str, stall=(1e9, 0.0), duration_s: float = 6.0):
     """edge-run on the video at one frame per FRAME_S (and one read that takes ``stall[1]`` s from script time
-    ``stall[0]``), the vehicle flying north; returns [(arrival script time, LANDING_TARGET)] and stdout."""
+    ``stall[0]``), the vehicle flying north; returns [(script time, arrival monotonic time, LANDING_TARGET)]."""
     read = VideoReader.read
     started = [0.0]
     stalled = [False]

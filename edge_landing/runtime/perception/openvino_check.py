@@ -40,22 +40,24 @@ def runs_in_child(path: Path, threads: int, timeout_s: float = CHECK_TIMEOUT_S) 
 
 
 def _compile_and_run(path: str, threads: int) -> None:
+    """The session edge-run would load (``backend.OpenVinoSession``: the same compile settings), run once on zeros
+    (every contract input is a float32 image)."""
     import numpy as np
-    import openvino as ov
 
-    compiled = ov.Core().compile_model(path, "CPU", {"INFERENCE_NUM_THREADS": threads, "PERFORMANCE_HINT": "LATENCY",
-                                                     "NUM_STREAMS": 1, "INFERENCE_PRECISION_HINT": "f32"})
-    ports = list(compiled.inputs)
-    if any(not p.get_partial_shape().is_static for p in ports):
+    from edge_landing.runtime.perception.backend import OpenVinoSession
+
+    session = OpenVinoSession(Path(path), threads)
+    ports = session.get_inputs()
+    if any(d is None for p in ports for d in p.shape):
         return                                    # compiled; nothing fixed to run it on
-    feeds = {p.get_any_name(): np.zeros(list(p.get_shape()), p.get_element_type().to_dtype()) for p in ports}
-    compiled.create_infer_request().infer(feeds)
+    session.run(None, {p.name: np.zeros([int(d) for d in p.shape if d is not None], np.float32) for p in ports})
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     if len(args) != 2 or not args[1].isdigit() or not Path(args[0]).is_file():
-        print(f"usage: python -m {__name__} MODEL.onnx THREADS (got {args})", file=sys.stderr)
+        print(f"usage: python -m edge_landing.runtime.perception.openvino_check MODEL.onnx THREADS (got {args})",
+              file=sys.stderr)
         return 2
     try:
         _compile_and_run(args[0], int(args[1]))

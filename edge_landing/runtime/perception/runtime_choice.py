@@ -116,7 +116,8 @@ def measure(candidates: List[Candidate], config: ProbeConfig) -> Tuple[Dict[str,
         if c.runtime is Runtime.OPENVINO:
             runs, why = runs_in_child(c.path, config.threads)
             agrees[c.label] = list(agreement(c.path, config.threads)) if runs else [False, why]
-            crashed |= set() if runs else {c.label}
+            if not runs:
+                crashed.add(c.label)
     timed = [c for c in candidates if c.label not in crashed]
     p50 = {c.label: math.inf for c in candidates}
     if timed:
