@@ -137,17 +137,30 @@ def machine_info() -> dict:
             "onnxruntime": onnxruntime.__version__, "load_average_start": list(os.getloadavg())}
 
 
-def openvino_usable(prepared, threads: int) -> Tuple[Dict[str, Path], List[str]]:
-    """OpenVINO's backend kinds and files that compiled and ran in a child process, and a note per file that did not."""
+def openvino_usable(prepared, threads: int) -> Tuple[Dict[str, Tuple[Path, Optional[str]]], List[str]]:
+    """OpenVINO's backend kinds, each with its file and precision, that compiled and ran in a child process, and
+    a note per file that did not. Float layers run in f32, as edge-run runs them; on a CPU where OpenVINO would
+    otherwise pick bf16 its default is timed too, as a peer: edge-run does not run it (bf16 changes the outputs
+    behind the accuracy gate's back)."""
+    from edge_landing.runtime.perception.backend import openvino_default_precision
     from edge_landing.runtime.perception.openvino_check import runs_in_child
 
-    files, notes = {}, []
-    for kind, label, path in (("openvino", "FP32", prepared.fp32_path), ("openvino-int8", "INT8", prepared.int8_path)):
-        ok, why = runs_in_child(path, threads)
+    candidates: List[Tuple[str, str, Path, Optional[str]]] = [
+        ("openvino", "FP32", prepared.fp32_path, "f32"), ("openvino-int8", "INT8", prepared.int8_path, "f32")]
+    default = openvino_default_precision()
+    if default != "f32":
+        candidates.append(("openvino-default", f"FP32 file at its default {default}", prepared.fp32_path, None))
+    files: Dict[str, Tuple[Path, Optional[str]]] = {}
+    notes: List[str] = []
+    for kind, label, path, precision in candidates:
+        ok, why = runs_in_child(path, threads, precision=precision)
         if ok:
-            files[kind] = path
+            files[kind] = (path, precision)
         else:
             notes.append(f"OpenVINO {label} not timed: {why}")
+    if "openvino-default" in files:
+        notes.append(f"OpenVINO default: OpenVINO's own {default} for float layers on this CPU, a peer only "
+                     "(edge-run compiles in f32: bf16 changes the outputs and no accuracy gate checked it)")
     return files, notes
 
 
@@ -173,8 +186,8 @@ def bench_model(prepared, config: BenchConfig, peak_gflops: float) -> rep.BenchR
         backends.append(ort_backend(prepared.int8_path, c, t, "ort-int8"))
         if config.torch:
             backends.append(torch_backend(prepared.module, c, t))
-        for kind, path in openvino_files.items():
-            backends.append(openvino_backend(path, c, t, kind=kind))
+        for kind, (path, precision) in openvino_files.items():
+            backends.append(openvino_backend(path, c, t, kind=kind, precision=precision))
     backends.append(matmul_backend(config.threads))
     timings = interleaved(backends, config.speed, desc=f"timing {m.name}")
     probe = timings.pop(f"matmul-peak@{config.threads}")

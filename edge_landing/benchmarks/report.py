@@ -1,7 +1,7 @@
 """Table 1-style speed report: rows in, markdown / JSON / CSV / PNG out.
 
 One :class:`BenchRow` per model; its ``timings`` map a backend kind (``ort-fp32``, ``ort-int8``, ``torch``,
-``openvino``, ``openvino-int8``) to the JSON of a :class:`benchmarks.speed.Timing`. The report JSON is::
+``openvino``, ``openvino-int8``, ``openvino-default``) to the JSON of a :class:`benchmarks.speed.Timing`. The report JSON is::
 
     {"schema": 1, "machine": {...}, "peak": {...}, "settings": {...}, "notes": [...], "rows": [BenchRow, ...]}
 """
@@ -15,9 +15,9 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 SCHEMA_VERSION = 1
-KIND_ORDER = ("ort-fp32", "ort-int8", "torch", "openvino", "openvino-int8")
+KIND_ORDER = ("ort-fp32", "ort-int8", "torch", "openvino", "openvino-int8", "openvino-default")
 KIND_LABEL = {"ort-fp32": "ORT FP32", "ort-int8": "ORT INT8", "torch": "PyTorch eager", "openvino": "OpenVINO FP32",
-              "openvino-int8": "OpenVINO INT8"}
+              "openvino-int8": "OpenVINO INT8", "openvino-default": "OpenVINO default precision"}
 ROW_KEYS = ("model", "arch", "task", "input_hw", "threads", "params_m", "onnx_fp32_mb", "onnx_int8_mb", "gmac",
             "paper_v100_images_per_s", "timings", "int8_vs_fp32", "int8_vs_torch", "fp32_gflops",
             "fp32_share_of_peak", "int8_agreement", "scaling", "notes", "peak_gflops_same_run")

@@ -112,16 +112,16 @@ def openvino_available() -> bool:
 
 
 def openvino_backend(path: os.PathLike | str, contract: ModelContract, threads: int, kind: str = "openvino",
-                     name: Optional[str] = None) -> Backend:
-    """OpenVINO's CPU plugin on the same ONNX file (an INT8 QDQ file runs as OpenVINO's own int8 kernels).
-    Idle threads do not spin here either (OpenVINO's TBB workers sleep between requests)."""
-    import openvino as ov
+                     name: Optional[str] = None, precision: Optional[str] = "f32") -> Backend:
+    """OpenVINO's CPU plugin on the same ONNX file (an INT8 QDQ file runs as OpenVINO's own int8 kernels), compiled
+    as edge-run compiles it (``runtime.perception.backend.OpenVinoSession``: float layers in f32 unless
+    ``precision`` says otherwise; None is OpenVINO's own default). Idle threads do not spin here either
+    (OpenVINO's TBB workers sleep between requests)."""
+    from edge_landing.runtime.perception.backend import OpenVinoSession
 
-    compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": threads,
-                                                         "PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": 1})
-    request = compiled.create_infer_request()
+    session = OpenVinoSession(os.fspath(path), threads, precision=precision)
     feed = {contract.input.name: input_tensor(contract)}
-    return Backend(name or f"{kind}@{threads}", kind, threads, lambda: request.infer(feed))
+    return Backend(name or f"{kind}@{threads}", kind, threads, lambda: session.run(None, feed))
 
 
 def interleaved(backends: Sequence[Backend], config: SpeedConfig = SpeedConfig(), desc: str = "timing"

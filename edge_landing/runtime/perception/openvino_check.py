@@ -18,9 +18,17 @@ from typing import Optional, Sequence, Tuple
 CHECK_TIMEOUT_S = 300.0      # a large model's first compile takes tens of seconds on 2 cores
 
 
-def runs_in_child(path: Path, threads: int, timeout_s: float = CHECK_TIMEOUT_S) -> Tuple[bool, str]:
-    """(True, "") when a child process compiled ``path`` with OpenVINO and ran it once; else (False, why)."""
-    cmd = [sys.executable, "-m", "edge_landing.runtime.perception.openvino_check", str(path), str(threads)]
+_DEFAULT = "default"         # the child's word for "OpenVINO's own default precision" (precision=None)
+
+
+def runs_in_child(path: Path, threads: int, timeout_s: float = CHECK_TIMEOUT_S,
+                  precision: Optional[str] = "f32") -> Tuple[bool, str]:
+    """(True, "") when a child process compiled ``path`` with OpenVINO and ran it once; else (False, why).
+
+    ``precision`` as in ``backend.OpenVinoSession``: a different precision is a different compile, which can
+    crash where the other does not."""
+    cmd = [sys.executable, "-m", "edge_landing.runtime.perception.openvino_check", str(path), str(threads),
+           precision or _DEFAULT]
     try:
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:
@@ -39,14 +47,14 @@ def runs_in_child(path: Path, threads: int, timeout_s: float = CHECK_TIMEOUT_S) 
     return False, f"OpenVINO cannot run it: {last[:200]}"
 
 
-def _compile_and_run(path: str, threads: int) -> None:
+def _compile_and_run(path: str, threads: int, precision: Optional[str]) -> None:
     """The session edge-run would load (``backend.OpenVinoSession``: the same compile settings), run once on zeros
     (every contract input is a float32 image)."""
     import numpy as np
 
     from edge_landing.runtime.perception.backend import OpenVinoSession
 
-    session = OpenVinoSession(Path(path), threads)
+    session = OpenVinoSession(Path(path), threads, precision=precision)
     ports = session.get_inputs()
     if any(d is None for p in ports for d in p.shape):
         return                                    # compiled; nothing fixed to run it on
@@ -55,12 +63,14 @@ def _compile_and_run(path: str, threads: int) -> None:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
-    if len(args) != 2 or not args[1].isdigit() or not Path(args[0]).is_file():
-        print(f"usage: python -m edge_landing.runtime.perception.openvino_check MODEL.onnx THREADS (got {args})",
-              file=sys.stderr)
+    if len(args) == 2:
+        args.append("f32")
+    if len(args) != 3 or not args[1].isdigit() or not Path(args[0]).is_file() or args[2] not in ("f32", _DEFAULT):
+        print("usage: python -m edge_landing.runtime.perception.openvino_check MODEL.onnx THREADS [f32|default] "
+              f"(got {args})", file=sys.stderr)
         return 2
     try:
-        _compile_and_run(args[0], int(args[1]))
+        _compile_and_run(args[0], int(args[1]), None if args[2] == _DEFAULT else args[2])
     except Exception as exc:  # OpenVINO raises its own untyped errors: one line for the parent
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(first, file=sys.stderr)
