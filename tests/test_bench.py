@@ -144,6 +144,32 @@ def test_goal_checks_say_met_or_missed_by_how_much():
     assert ("edgenet", "ORT FP32 share of the matmul peak") not in checks   # not a conv-heavy published model
 
 
+def test_per_cpu_goals_judge_the_fastest_configuration_edge_run_may_run_not_openvinos_bf16():
+    """Issue 16's goals are about what edge-run runs: ORT or OpenVINO (f32), FP32 or INT8. OpenVINO's own default
+    precision is a peer it is compared with, never a pick."""
+    from edge_landing.benchmarks.goals import check_goals
+
+    def row(model, **ips):
+        return {"model": model, "timings": {k.replace("_", "-"): {"images_per_s": v} for k, v in ips.items()}}
+
+    report = {"rows": [
+        row("edgenet", ort_fp32=74.0, ort_int8=82.0, torch=39.0, openvino=57.0, openvino_int8=107.0),
+        row("safeuav-small", ort_fp32=51.0, ort_int8=67.0, torch=32.0, openvino=55.0, openvino_int8=119.0,
+            openvino_default=136.0),
+        row("densedepth", ort_fp32=0.42, ort_int8=0.40)]}
+    checks = {(c.model, c.goal): c for c in check_goals(report)}
+    pick = "fastest of what edge-run may run"
+    edge = checks[("edgenet", f"{pick} / ORT FP32")]
+    assert edge.met and edge.value == pytest.approx(107 / 74) and edge.target == 1.3 and "openvino-int8" in edge.detail
+    assert checks[("safeuav-small", f"{pick} / PyTorch eager")].value == pytest.approx(119 / 32)
+    beaten = checks[("safeuav-small", f"{pick} / fastest OpenVINO (openvino-default)")]
+    assert not beaten.met and beaten.value == pytest.approx(119 / 136) and "does not run" in beaten.line()
+    assert checks[("edgenet", f"{pick} / fastest OpenVINO (openvino-int8)")].met
+    # A slower INT8 is never the pick: FP32 is, so "never slower than FP32" holds at exactly 1.
+    assert checks[("densedepth", f"{pick} / ORT FP32")].value == pytest.approx(1.0)
+    assert ("densedepth", f"{pick} / PyTorch eager") not in checks
+
+
 def test_depth_anything_v2_small_peer_has_the_published_size(one_torch_thread):
     """The speed peer: Depth Anything V2 Small's architecture (24.8 M parameters), random weights."""
     pytest.importorskip("transformers")
