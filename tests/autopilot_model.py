@@ -15,6 +15,9 @@ What it models, from ArduPilot's documented precision-landing behaviour (docs/cl
 - LANDING_TARGET: frame BODY_FRD (12) or LOCAL_FRD only ("Plnd: Frame not supported" otherwise),
   ``position_valid = 1`` and ``distance > 0``; only the direction (x, y, z)/|.| is used, rotated by the attitude
   of ``plnd_lag_s`` ago; the range comes from its own height above ground (PLND_EST_TYPE 0, raw sensor).
+- A message is a new measurement only when its ``time_usec``, in milliseconds, differs from the last one used
+  (AC_PrecLand::retrieve_los_meas compares the jitter-corrected millisecond); a repeat counts as a duplicate
+  and feeds nothing.
 - The estimator needs updates < 0.5 s apart for 2 s ("PrecLand: Init Complete") and drops the target after
   2 s without one ("PrecLand: Target Lost"; it then needs a new init).
 - LAND with a target: fly horizontally to it at altitude, descend only within ``xy_dist_max_m`` (PLND_XY_DIST_MAX,
@@ -126,6 +129,8 @@ class AutopilotModel:
         self.precland = PrecLand(cfg)
         self.history: Deque[Tuple[float, Attitude, np.ndarray]] = deque(maxlen=int(cfg.physics_hz * 2))
         self.rejected = 0
+        self.duplicates = 0                                    # LANDING_TARGETs repeating the last one's time_usec ms
+        self.last_stamp_ms: Optional[int] = None
         self.boot_s = time.monotonic()
         self.mavutil = load_mavutil()
         self.conns = [self.mavutil.mavlink_connection(u, source_system=1, source_component=1) for u in cfg.outs]
@@ -252,6 +257,11 @@ class AutopilotModel:
         if getattr(msg, "position_valid", 0) != 1 or not msg.distance > 0 or not np.linalg.norm(xyz) > 0:
             self.rejected += 1
             return
+        stamp_ms = int(msg.time_usec) // 1000
+        if stamp_ms == self.last_stamp_ms:
+            self.duplicates += 1
+            return
+        self.last_stamp_ms = stamp_ms
         lagged_att, lagged_pos = self._lagged(now_s - self.cfg.plnd_lag_s)
         direction = lagged_att.ned_from_body() @ (xyz / np.linalg.norm(xyz))
         agl = self.agl_m()

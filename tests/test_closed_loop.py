@@ -247,16 +247,21 @@ def test_model_rotates_body_frd_targets_with_the_lagged_attitude_and_ranges_them
     model.history.append((9.85, Attitude(0.0, 0.0, math.pi / 2), model.pos.copy()))   # facing east 0.15 s ago
     model.history.append((9.95, Attitude(0.0, 0.0, 0.0), model.pos.copy()))           # facing north now
 
-    def landing_target(frame: int):
+    def landing_target(frame: int, time_usec: int = 9_900_000):
         x, y, z = 10.0, 0.0, 20.0
-        return m.MAVLink_landing_target_message(0, 0, frame, 0.0, 0.0, math.hypot(x, z), 0.0, 0.0, x, y, z,
+        return m.MAVLink_landing_target_message(time_usec, 0, frame, 0.0, 0.0, math.hypot(x, z), 0.0, 0.0, x, y, z,
                                                 [1.0, 0.0, 0.0, 0.0], 3, 1)
 
     model._landing_target(landing_target(12), now_s=10.0)                 # 10.0 - lag 0.1 = 9.9: facing east
     expected = np.array([5.0, -3.0 + 10.0 * agl / 20.0, -20.0 + agl])
     np.testing.assert_allclose(model.precland.target_ned, expected, atol=1e-6)
-    model._landing_target(landing_target(1), now_s=10.1)                  # LOCAL_NED: ArduPilot refuses it
+    model._landing_target(landing_target(1, 9_950_000), now_s=10.1)      # LOCAL_NED: ArduPilot refuses it
     assert model.rejected == 1 and model.precland.used == 1
+    # The same time_usec millisecond again is not a new measurement (AC_PrecLand::retrieve_los_meas).
+    model._landing_target(landing_target(12, 9_900_400), now_s=10.2)
+    assert model.duplicates == 1 and model.precland.used == 1
+    model._landing_target(landing_target(12, 9_901_000), now_s=10.2)
+    assert model.precland.used == 2
 
 
 def test_path_hits_finds_a_wall_and_passes_a_clear_descent():

@@ -77,6 +77,7 @@ class MavlinkLink:
         self._last_heard_s = -math.inf
         self._up_reported: Optional[bool] = None
         self._skip_reported = False
+        self._last_stamp_ms: Optional[int] = None           # LANDING_TARGET time_usec // 1000 last sent
         self._last_telemetry_s = -math.inf
         self._last_request_s = -math.inf
         self._timesync: Optional[TimesyncClient] = None
@@ -139,9 +140,15 @@ class MavlinkLink:
 
     # -- sending (pipeline thread) ----------------------------------------------------------------------
     def send_target(self, target: Target, state: Optional[VehicleState],
-                    clock_lag_s: float = 0.0) -> Tuple[bool, str]:
+                    clock_lag_s: float = 0.0, stamp_s: Optional[float] = None) -> Tuple[bool, str]:
         """Send LANDING_TARGET for a valid target; returns (sent, why not). Sent means it left the socket.
-        ``clock_lag_s``: the frame's Frame.clock_lag_s (a simulated flight's clock behind this one)."""
+        ``clock_lag_s``: the frame's Frame.clock_lag_s (a simulated flight's clock behind this one).
+        ``stamp_s``: the time the body vector holds for (the pose it was expressed at; default the capture time),
+        sent as ``time_usec``. The age limit is always judged on the capture time: a re-expressed vector is no
+        fresher evidence. ArduPilot takes a message as a new measurement only when its (jitter-corrected)
+        millisecond differs from the last one's (AC_PrecLand::retrieve_los_meas), so a stamp not later than the
+        last sent one, in milliseconds, is moved to the next millisecond: a re-send that kept its stamp would be
+        dropped as a duplicate and would not keep ArduPilot's estimator fed, and the stamps only grow."""
         if not target.valid or target.position_body_frd_m is None:
             return False, target.reason or "no target"
         body = np.asarray(target.position_body_frd_m, dtype=np.float64)
@@ -183,14 +190,24 @@ class MavlinkLink:
             self.counts.add("rate_capped")
             return False, f"rate cap: at most {self.config.max_target_hz:g} LANDING_TARGET/s (--target-hz)"
         m = self._mavutil.mavlink
+        stamp_us = self._unique_stamp_us(target.capture_time_s if stamp_s is None else stamp_s)
         msg = m.MAVLink_landing_target_message(
-            int(target.capture_time_s * 1e6), 0, frame, _finite(target.angle_x_rad), _finite(target.angle_y_rad),
+            stamp_us, 0, frame, _finite(target.angle_x_rad), _finite(target.angle_y_rad),
             distance, _finite(target.size_x_rad), _finite(target.size_y_rad), float(xyz[0]), float(xyz[1]),
             float(xyz[2]), [1.0, 0.0, 0.0, 0.0], TARGET_TYPE_VISION_OTHER, 1)
         if self._send(msg):
             self.counts.add("targets")
+            self._last_stamp_ms = stamp_us // 1000
             return True, ""
         return False, "link down: send failed"
+
+    def _unique_stamp_us(self, stamp_s: float) -> int:
+        """``time_usec`` for a stamp, in a later millisecond than the last sent target's (see send_target). Stamps
+        are pose times, which only grow, or capture times, a little older; so the push is a millisecond or a few."""
+        stamp_us = int(stamp_s * 1e6)
+        if self._last_stamp_ms is not None and stamp_us // 1000 <= self._last_stamp_ms:
+            stamp_us = (self._last_stamp_ms + 1) * 1000 + stamp_us % 1000
+        return stamp_us
 
     def send_status(self, text: str, severity: int = 6) -> bool:
         """STATUSTEXT (severity 6 = INFO), at most 50 characters (put the number first: it is cut there)."""

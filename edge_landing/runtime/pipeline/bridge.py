@@ -10,7 +10,9 @@ The bridge re-sends the target the newest decided frame sent, re-expressed at th
 caller (the same re-expression every held spot gets), when nothing has left for ``period_s``. It adds no
 evidence and no spot: only a target a frame already decided to send, only until the next frame is decided
 (a frame that sends nothing clears it at once), and it keeps that frame's capture time, so the link's age
-limit (``LinkConfig.max_target_age_s``, what the autopilot accepts) ends it after a stall. Pure state, no I/O.
+limit (``LinkConfig.max_target_age_s``, what the autopilot accepts) ends it after a stall. Each re-send is
+stamped (``time_usec``) with the time of the pose it is expressed at, not the capture time: ArduPilot takes a
+message whose stamp repeats the last one's for a duplicate and feeds nothing with it. Pure state, no I/O.
 """
 from __future__ import annotations
 

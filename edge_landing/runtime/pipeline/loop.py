@@ -241,7 +241,8 @@ class Pipeline:
             with self._send_lock:
                 target = self._recheck(target, frame.clock_lag_s)
                 target, pose_time_s = self._at_newest_pose(target, match.state)
-                sent, why = self.link.send_target(target, match.state, clock_lag_s=frame.clock_lag_s)
+                sent, why = self.link.send_target(target, match.state, clock_lag_s=frame.clock_lag_s,
+                                                  stamp_s=pose_time_s)
                 now = time.monotonic() - frame.clock_lag_s   # on the frame's clock (Frame.clock_lag_s)
                 if sent:
                     s.times.add("capture_to_send", now - frame.capture_time_s)
@@ -283,7 +284,8 @@ class Pipeline:
             target, capture = due
             target = self._recheck(target, lag)
             target, pose_time_s = self._at_newest_pose(target, capture)
-            sent, why = self.link.send_target(target, self.telemetry.newest_state(), clock_lag_s=lag)
+            sent, why = self.link.send_target(target, self.telemetry.newest_state(), clock_lag_s=lag,
+                                              stamp_s=pose_time_s)
             if sent:
                 self.bridge.resent_at(now)
                 self.summary.bridged += 1
