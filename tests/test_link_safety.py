@@ -6,18 +6,24 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import socket
+import threading
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
 import pytest
 
+import edge_landing.runtime.io.mavlink_link as link_module
 from edge_landing.cli.run import main
 from edge_landing.runtime.core.camera import Intrinsics, Mount
 from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, Frame, Prediction, Target, VehicleState
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+from edge_landing.runtime.io.autopilot_setup import SetupCheck
 from edge_landing.runtime.io.grabber import Grabber
+from edge_landing.runtime.io.mavlink_conn import load_mavutil
 from edge_landing.runtime.io.mavlink_link import LinkConfig, MavlinkLink
 from edge_landing.runtime.io.sources import SourceConfig, SourceKind
 from edge_landing.runtime.io.telemetry import ClockOffset, TelemetryBuffer, TelemetryConfig
@@ -400,3 +406,50 @@ def test_targets_leave_expressed_at_the_newest_pose():
     assert out.angle_y_rad == pytest.approx(math.atan2(30.0 / math.sqrt(2.0), 30.0 / math.sqrt(2.0)), abs=1e-9)
     no_position = Target(2, 10.0, True, position_body_frd_m=np.array([10.0, 0.0, 30.0]), clearance_m=3.0)
     assert Pipeline._at_newest_pose(holder, no_position, None) == (no_position, 10.0)  # type: ignore[arg-type]
+
+
+def test_a_serial_link_whose_output_queue_backs_up_drops_targets_instead_of_queueing_them(monkeypatch):
+    """A radio slower than what is written fills the serial port's output queue, and a target waiting there reaches
+    the autopilot late. The link asks the port's queue (TIOCOUTQ) before each target. Real pyserial and pymavlink on
+    a pseudo-terminal; a pseudo-terminal never reports a queue (it says 0), so the UART driver's answer is played
+    by a stand-in (a test double: no serial hardware here). The autopilot's heartbeats come in on the terminal."""
+    pytest.importorskip("serial")
+
+    queued = [0]
+    monkeypatch.setattr(link_module, "unsent_bytes", lambda port: queued[0] if hasattr(port, "fileno") else -1)
+    master, slave = os.openpty()
+    mav = load_mavutil().mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    mav.WIRE_PROTOCOL_VERSION = "2.0"
+    stop = threading.Event()
+
+    def autopilot():
+        m = load_mavutil().mavlink
+        while not stop.is_set():
+            beat = mav.heartbeat_encode(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE)
+            os.write(master, beat.pack(mav))
+            try:
+                os.read(master, 65536)       # what the link wrote: taken, as a radio takes it
+            except BlockingIOError:
+                pass
+            stop.wait(0.1)
+
+    os.set_blocking(master, False)
+    thread = threading.Thread(target=autopilot, daemon=True)
+    thread.start()
+    # The setup check is off: this autopilot only beats; parameter reads have their own tests.
+    link = MavlinkLink(LinkConfig(f"{os.ttyname(slave)},57600", setup_check=SetupCheck.OFF), TelemetryBuffer()).start()
+    try:
+        assert wait_until_sendable(link)
+        body = np.array([5.0, 0.0, 10.0])
+        target = Target(0, time.monotonic(), True, position_body_frd_m=body, clearance_m=3.0)
+        assert link.send_target(target, None) == (True, "")
+        queued[0] = 4000                     # ~0.7 s of a 57600-baud line already waiting
+        sent, why = link.send_target(replace(target, capture_time_s=time.monotonic()), None)
+        assert not sent and why == "link backed up: 4000 bytes not yet taken by the peer"
+        assert link.counts["dropped_backed_up"] == 1
+    finally:
+        stop.set()
+        link.stop()
+        thread.join(2.0)
+        os.close(master)
+        os.close(slave)

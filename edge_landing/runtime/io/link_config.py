@@ -36,7 +36,7 @@ class LinkConfig:
     error_quiet_s: float = 2.0     # the link counts as up again after this long without a send error
     heard_within_s: float = 1.5    # the autopilot counts as heard while a message came within this
     max_target_age_s: float = 1.0  # an older target is dropped, never queued
-    max_unsent_bytes: int = 512    # TCP: a send queue longer than this means the peer is not reading
+    max_unsent_bytes: int = 512    # TCP or serial: a longer send queue means the peer is not reading (or too slowly)
     max_target_hz: float = 20.0    # LANDING_TARGET at most this often on average (0: every target; io.send_rate)
     connect_timeout_s: float = 2.0
     reconnect_min_s: float = 0.5

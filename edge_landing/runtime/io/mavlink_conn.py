@@ -118,10 +118,11 @@ def _timed_tcp(mavutil: Any, host_port: str, timeout_s: float, **kwargs: Any) ->
     return TimedTcp(host_port, retries=0, **kwargs)
 
 
-def unsent_bytes(sock: socket.socket) -> int:
-    """Bytes still in a TCP socket's send queue (Linux SIOCOUTQ), 0 where that cannot be asked."""
+def unsent_bytes(port: Any) -> int:
+    """Bytes still in a TCP socket's send queue or a serial port's output queue (Linux SIOCOUTQ / TIOCOUTQ, the
+    same request), 0 where that cannot be asked (a pseudo-terminal always says 0)."""
     try:
-        buf = fcntl.ioctl(sock.fileno(), termios.TIOCOUTQ, b"\0\0\0\0")
+        buf = fcntl.ioctl(port.fileno(), termios.TIOCOUTQ, b"\0\0\0\0")
         return int(struct.unpack("i", buf)[0])
     except (OSError, ValueError):
         return 0

@@ -220,8 +220,11 @@ class MavlinkLink:
         return ok
 
     def _backlog(self) -> int:
+        """Bytes queued for the peer: a TCP socket's send queue, or a serial port's output queue (a radio slower
+        than what is written builds one, and a target that waits there arrives late). UDP has no queue to ask."""
         conn = self._conn
-        if conn is None or not self.config.url.startswith("tcp:"):
+        url = self.config.url
+        if conn is None or (url.startswith(NET_PREFIXES) and not url.startswith("tcp:")):
             return 0
         return unsent_bytes(conn.port)
 
