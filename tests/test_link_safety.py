@@ -416,10 +416,9 @@ def test_a_serial_link_whose_output_queue_backs_up_drops_targets_instead_of_queu
     pytest.importorskip("serial")
 
     queued = [0]
-    monkeypatch.setattr(link_module, "unsent_bytes", lambda port: queued[0] if hasattr(port, "fileno") else -1)
+    monkeypatch.setattr(link_module, "unsent_bytes", lambda port: queued[0])
     master, slave = os.openpty()
     mav = load_mavutil().mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    mav.WIRE_PROTOCOL_VERSION = "2.0"
     stop = threading.Event()
 
     def autopilot():

@@ -142,13 +142,13 @@ def openvino_usable(prepared, threads: int) -> Tuple[Dict[str, Tuple[Path, Optio
     a note per file that did not. Float layers run in f32, as edge-run runs them; on a CPU where OpenVINO would
     otherwise pick bf16 its default is timed too, as a peer: edge-run does not run it (bf16 changes the outputs
     behind the accuracy gate's back)."""
-    from edge_landing.runtime.perception.backend import openvino_default_precision
+    from edge_landing.runtime.perception.backend import RUN_PRECISION, openvino_default_precision
     from edge_landing.runtime.perception.openvino_check import runs_in_child
 
     candidates: List[Tuple[str, str, Path, Optional[str]]] = [
-        ("openvino", "FP32", prepared.fp32_path, "f32"), ("openvino-int8", "INT8", prepared.int8_path, "f32")]
+        ("openvino", "FP32", prepared.fp32_path, RUN_PRECISION), ("openvino-int8", "INT8", prepared.int8_path, RUN_PRECISION)]
     default = openvino_default_precision()
-    if default != "f32":
+    if default != RUN_PRECISION:
         candidates.append(("openvino-default", f"FP32 file at its default {default}", prepared.fp32_path, None))
     files: Dict[str, Tuple[Path, Optional[str]]] = {}
     notes: List[str] = []
@@ -160,7 +160,7 @@ def openvino_usable(prepared, threads: int) -> Tuple[Dict[str, Tuple[Path, Optio
             notes.append(f"OpenVINO {label} not timed: {why}")
     if "openvino-default" in files:
         notes.append(f"OpenVINO default: OpenVINO's own {default} for float layers on this CPU, a peer only "
-                     "(edge-run compiles in f32: bf16 changes the outputs and no accuracy gate checked it)")
+                     f"(edge-run compiles in {RUN_PRECISION}: {default} changes the outputs and no accuracy gate checked it)")
     return files, notes
 
 

@@ -10,8 +10,12 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import List, Optional
 
+from .catalog import CATALOG, PEERS
+from .report import KIND_ORDER
+
 CONV_HEAVY = ("densedepth", "safeuav-large", "safeuav-small", "adabins-80", "adabins-256")
-ZOO = ("densedepth", "safeuav-large", "safeuav-small", "edgenet", "adabins-80", "adabins-256")
+ZOO = tuple(name for name in CATALOG if name not in PEERS)
+OPENVINO_KINDS = tuple(kind for kind in KIND_ORDER if kind.startswith("openvino"))
 # What edge-run --precision auto --runtime auto chooses among (OpenVINO in f32; its own bf16 default is not one).
 PICKABLE = ("ort-fp32", "ort-int8", "openvino", "openvino-int8")
 _PICK_NOTE = "fastest of what edge-run may run"
@@ -73,7 +77,7 @@ def per_cpu_checks(rows: dict) -> List[GoalCheck]:
         torch = _ips(row, "torch")
         if name == "safeuav-small" and torch:
             checks += _at_least(name, f"{_PICK_NOTE} / PyTorch eager", ips / torch, 2.5, detail)
-        openvino = [(k, v) for k in ("openvino", "openvino-int8", "openvino-default") if (v := _ips(row, k))]
+        openvino = [(k, v) for k in OPENVINO_KINDS if (v := _ips(row, k))]
         if openvino:
             ov_kind, ov_ips = max(openvino, key=lambda kv: kv[1])
             checks += _at_least(name, f"{_PICK_NOTE} / fastest OpenVINO ({ov_kind})", ips / ov_ips, 1.0,

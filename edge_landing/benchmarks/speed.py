@@ -17,6 +17,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.perception.backend import RUN_PRECISION
 from edge_landing.runtime.perception.contract import Layout, ModelContract
 
 
@@ -112,7 +113,7 @@ def openvino_available() -> bool:
 
 
 def openvino_backend(path: os.PathLike | str, contract: ModelContract, threads: int, kind: str = "openvino",
-                     name: Optional[str] = None, precision: Optional[str] = "f32") -> Backend:
+                     name: Optional[str] = None, precision: Optional[str] = RUN_PRECISION) -> Backend:
     """OpenVINO's CPU plugin on the same ONNX file (an INT8 QDQ file runs as OpenVINO's own int8 kernels), compiled
     as edge-run compiles it (``runtime.perception.backend.OpenVinoSession``: float layers in f32 unless
     ``precision`` says otherwise; None is OpenVINO's own default). Idle threads do not spin here either

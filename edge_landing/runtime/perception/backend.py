@@ -44,6 +44,10 @@ def openvino_available() -> bool:
     return importlib.util.find_spec("openvino") is not None
 
 
+# OpenVINO's inference precision for float layers in edge-run (and in every timing that stands for edge-run).
+RUN_PRECISION = "f32"
+
+
 def openvino_default_precision() -> str:
     """The precision OpenVINO's CPU plugin runs float layers in when not told (``"bf16"`` on CPUs with native bf16)."""
     import openvino as ov
@@ -76,7 +80,7 @@ class OpenVinoSession:
     for OpenVINO's own default (bf16 on CPUs with native bf16; edge-bench times that as a peer only).
     """
 
-    def __init__(self, path: Path | str, threads: int, precision: Optional[str] = "f32") -> None:
+    def __init__(self, path: Path | str, threads: int, precision: Optional[str] = RUN_PRECISION) -> None:
         if not openvino_available():
             raise InputError("--runtime openvino: openvino is not installed (pip install 'edge-landing[openvino]')")
         import openvino as ov

@@ -15,6 +15,8 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence, Tuple
 
+from edge_landing.runtime.perception.backend import RUN_PRECISION
+
 CHECK_TIMEOUT_S = 300.0      # a large model's first compile takes tens of seconds on 2 cores
 
 
@@ -22,7 +24,7 @@ _DEFAULT = "default"         # the child's word for "OpenVINO's own default prec
 
 
 def runs_in_child(path: Path, threads: int, timeout_s: float = CHECK_TIMEOUT_S,
-                  precision: Optional[str] = "f32") -> Tuple[bool, str]:
+                  precision: Optional[str] = RUN_PRECISION) -> Tuple[bool, str]:
     """(True, "") when a child process compiled ``path`` with OpenVINO and ran it once; else (False, why).
 
     ``precision`` as in ``backend.OpenVinoSession``: a different precision is a different compile, which can
@@ -62,12 +64,13 @@ def _compile_and_run(path: str, threads: int, precision: Optional[str]) -> None:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    args = list(sys.argv[1:] if argv is None else argv)
+    given = list(sys.argv[1:] if argv is None else argv)
+    args = list(given)
     if len(args) == 2:
-        args.append("f32")
-    if len(args) != 3 or not args[1].isdigit() or not Path(args[0]).is_file() or args[2] not in ("f32", _DEFAULT):
-        print("usage: python -m edge_landing.runtime.perception.openvino_check MODEL.onnx THREADS [f32|default] "
-              f"(got {args})", file=sys.stderr)
+        args.append(RUN_PRECISION)
+    if len(args) != 3 or not args[1].isdigit() or not Path(args[0]).is_file() or args[2] not in (RUN_PRECISION, _DEFAULT):
+        print(f"usage: python -m edge_landing.runtime.perception.openvino_check MODEL.onnx THREADS [{RUN_PRECISION}|default] "
+              f"(got {given})", file=sys.stderr)
         return 2
     try:
         _compile_and_run(args[0], int(args[1]), None if args[2] == _DEFAULT else args[2])
