@@ -19,7 +19,8 @@ from edge_landing.runtime.io.poses import Pose
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.io.tlog import TlogConfig, TlogTelemetry, parse_video_start
 from edge_landing.sim.tlog_writer import LOG_START_UNIX_S, PREROLL_S, write_flight_tlog
-from tests.run_helpers import flat_assets, read_decisions
+from tests.fake_autopilot import FakeAutopilot
+from tests.run_helpers import flat_assets, free_udp_port, read_decisions
 from tests.test_gimbal import quat
 
 LOCAL_VIDEO_START_S = 1000.0     # where the tests put the video's first frame on the local clock
@@ -233,3 +234,30 @@ def test_a_log_whose_clock_went_back_is_said_once_and_still_read(tmp_path, caplo
     assert len(said) == 1 and "went back 29.9" in said[0]          # 0.95 s after the start to 29 s before it
     assert log.counts["packets"] == 80 and log.ended
     log.close()
+
+
+@pytest.mark.parametrize("armed", [False, True])
+def test_targets_made_from_replayed_poses_never_reach_an_armed_autopilot(assets, tmp_path, armed):
+    """A replay (--poses, --tlog, the sim camera) places targets with another flight's poses: an autopilot that is
+    flying must not get them. The autopilot is a TEST DOUBLE (tests.fake_autopilot); the disarmed run is the
+    control that shows targets do reach it otherwise."""
+    m = load_mavutil().mavlink
+    base_mode = m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (m.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+
+    def script(fake: FakeAutopilot, t: float) -> None:
+        fake.conn.mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode, 0,
+                                     m.MAV_STATE_ACTIVE)
+
+    port, log_path = free_udp_port(), tmp_path / "decisions.jsonl"
+    with FakeAutopilot(port, script) as fake:
+        assert main(["--camera", assets["video"], "--model", assets["model"], "--poses", assets["poses"], "--loop",
+                     "--duration", "2.5", "--mav", f"udpout:127.0.0.1:{port}", "--log", str(log_path),
+                     "--vehicle-radius", "0.5", "--margin", "0.5", "--allow-unconfirmed"]) == 0
+    targets, decisions = fake.of_type("LANDING_TARGET"), read_decisions(log_path)
+    held = [d for d in decisions if d["not_sent_because"].startswith("held: the autopilot is armed")]
+    if not armed:
+        assert len(targets) >= 5 and not held
+        return
+    assert targets == [] and len(held) >= 5
+    assert "--poses replay" in held[0]["not_sent_because"]
+    assert any("replayed poses, targets held" in text for text in fake.texts())

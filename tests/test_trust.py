@@ -117,6 +117,22 @@ def test_telemetry_from_one_autopilot_only(assets, tmp_path):
     assert fake.targets_between(SWITCH_S + GRACE_S, 1e9) == []
 
 
+def test_an_antenna_tracker_heard_first_is_not_taken_for_the_autopilot(assets, tmp_path):
+    """ArduPilot's AntennaTracker firmware says ArduPilot in its HEARTBEAT and streams its own ATTITUDE."""
+    def script(fake: FakeAutopilot, t: float) -> None:
+        m = fake.mavutil.mavlink
+        tracker = m.MAVLink(fake.conn, srcSystem=2, srcComponent=1)
+        tracker.heartbeat_send(m.MAV_TYPE_ANTENNA_TRACKER, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE)
+        tracker.attitude_send(fake.boot_ms(), 0.5, 0.3, 0.0, 0.0, 0.0, 0.0)
+        if t >= 0.5:
+            fake.healthy()
+
+    fake, _, _ = run_against(assets, tmp_path, script, 3.0)
+    good = fake.targets_between(0.0, 1e9)
+    assert len(good) >= 5, "the vehicle heard after the tracker must still be the autopilot"
+    assert all(abs(t.y) < 0.3 and t.z == pytest.approx(AGL_M, abs=0.3) for t in good)   # level: not the tracker's
+
+
 def test_named_autopilot_that_is_not_there_gives_no_target(assets, tmp_path):
     fake, decisions, _ = run_against(assets, tmp_path, lambda f, t: f.healthy(), 2.0, "--mav-target-system", "42")
     assert fake.of_type("HEARTBEAT") and fake.of_type("LANDING_TARGET") == []

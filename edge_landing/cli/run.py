@@ -305,6 +305,8 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
     # without it the frame's own pose is.
     own_telemetry = (src.kind is SourceKind.SIM or bool(cfg.poses) or bool(cfg.tlog)
                      or (src.kind is SourceKind.SIM_FOLLOW and not cfg.mav))
+    replayed = ("" if not own_telemetry else "sim camera" if src.kind is SourceKind.SIM
+                else "--tlog replay" if cfg.tlog else "--poses replay")
     link = None
     with contextlib.ExitStack() as stack:
         if cfg.mav:
@@ -314,12 +316,13 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
             tlog_out = str(Path(cfg.flight_record) / TLOG_NAME) if cfg.flight_record else ""
             link = MavlinkLink(LinkConfig(cfg.mav, cfg.autopilot, cfg.mav_sysid, cfg.mav_compid, cfg.mav_key,
                                           target_system=cfg.mav_target_system, tlog_out=tlog_out,
-                                          setup_check=cfg.autopilot_check, max_target_hz=cfg.target_hz),
+                                          setup_check=cfg.autopilot_check, max_target_hz=cfg.target_hz,
+                                          replayed_telemetry=replayed),
                               link_telemetry).start()
             stack.callback(link.stop)
             if own_telemetry:  # said once the link is up, not before a bad --mav is refused
-                log.info("%s: using its own telemetry; the autopilot's is not used",
-                         "sim camera" if src.kind is SourceKind.SIM else "--tlog replay" if cfg.tlog else "--poses replay")
+                log.warning("%s: targets are made from its own telemetry, not the autopilot's, and are sent only "
+                            "while the autopilot is disarmed", replayed)
             if not own_telemetry and cfg.telemetry_wait_s > 0:
                 wait_for_telemetry(telemetry, cfg.telemetry_wait_s, out)
         grabber = Grabber(src, telemetry=telemetry if own_telemetry else None).start()

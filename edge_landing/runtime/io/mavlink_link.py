@@ -38,6 +38,7 @@ from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: 
 )
 from edge_landing.runtime.io.send_rate import SendRate
 from edge_landing.runtime.io.setup_reader import SetupReader
+from edge_landing.runtime.io.stream_requests import StreamRequests
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.io.telemetry_feed import (  # noqa: F401  (TELEMETRY_MESSAGES re-exported)
     ESTIMATOR_MESSAGES,
@@ -78,7 +79,12 @@ class MavlinkLink:
         self._up_reported: Optional[bool] = None
         self._skip_reported = False
         self._last_stamp_ms: Optional[int] = None           # LANDING_TARGET time_usec // 1000 last sent
-        self._last_telemetry_s = -math.inf
+        # The estimator's status at 2 Hz (each autopilot refuses the other's message id: harmless).
+        wanted = {**{name: config.telemetry_rate_hz for name in TELEMETRY_MESSAGES}, **{n: 2.0 for n in ESTIMATOR_MESSAGES}}
+        if telemetry.gimbal is not None:
+            wanted[GIMBAL_MESSAGE] = config.telemetry_rate_hz
+        self._streams = StreamRequests(wanted)
+        self._peer_armed = False                            # its newest HEARTBEAT's MAV_MODE_FLAG_SAFETY_ARMED
         self._last_request_s = -math.inf
         self._timesync: Optional[TimesyncClient] = None
         self._noise_seen = 0
@@ -165,6 +171,10 @@ class MavlinkLink:
             self.counts.add("dropped_not_heard")
             return False, ("link down: no autopilot heard yet" if heard == math.inf
                            else f"link down: autopilot not heard for {heard:.1f} s")
+        if self.config.replayed_telemetry and self._peer_armed:
+            self.counts.add("held_armed_replay")
+            return False, (f"held: the autopilot is armed and this target was made from the "
+                           f"{self.config.replayed_telemetry}'s telemetry, not its own")
         if self.config.autopilot is Autopilot.PX4:
             xyz = target_ned(target, state)
             if xyz is None:
@@ -356,20 +366,15 @@ class MavlinkLink:
             self.counts.add("heartbeats")
 
     def _request_telemetry(self, now: float) -> None:
-        """Ask the autopilot for the messages we need until they flow (and again if they stop)."""
-        if self.peer is None or now - self._last_telemetry_s < 1.0 or now - self._last_request_s < 3.0:
+        """Ask the autopilot for each stream we need while it arrives slower than asked (stream_requests.py)."""
+        if self.peer is None or now - self._last_request_s < 0.5:
             return
         self._last_request_s = now
         m = self._mavutil.mavlink
-        interval_us = 1e6 / self.config.telemetry_rate_hz
-        # The estimator's status at 2 Hz (each autopilot refuses the other's message id: harmless).
-        wanted = [(name, interval_us) for name in TELEMETRY_MESSAGES] + [(name, 5e5) for name in ESTIMATOR_MESSAGES]
-        if self.telemetry.gimbal is not None:
-            wanted.append((GIMBAL_MESSAGE, interval_us))
-        for name, interval in wanted:
+        for name, interval_us in self._streams.due(now, self.telemetry.reboots):
             msg_id = getattr(m, f"MAVLINK_MSG_ID_{name}")
             self._send(m.MAVLink_command_long_message(self.peer[0], self.peer[1], m.MAV_CMD_SET_MESSAGE_INTERVAL,
-                                                      0, msg_id, interval, 0, 0, 0, 0, 0))
+                                                      0, msg_id, interval_us, 0, 0, 0, 0, 0))
 
     def _choose_peer(self, msg: Any, sender: Tuple[int, int]) -> None:
         """The first autopilot-type HEARTBEAT (of ``target_system`` when given) names the one autopilot."""
@@ -386,6 +391,18 @@ class MavlinkLink:
                         self.config.autopilot.value, self.config.autopilot.value,
                         "LOCAL_NED positions" if self.config.autopilot is Autopilot.PX4 else "BODY_FRD directions")
 
+    def _note_armed(self, armed: bool) -> None:
+        """The autopilot's HEARTBEAT said it is (dis)armed: said when that holds or frees replayed targets."""
+        if armed != self._peer_armed and self.config.replayed_telemetry:
+            if armed:
+                log.warning("the autopilot is armed: targets made from the %s's telemetry (another flight's poses) "
+                            "are held until it disarms", self.config.replayed_telemetry)
+                self.send_status("edge: armed; replayed poses, targets held", severity=4)
+            else:
+                log.info("the autopilot is disarmed: targets made from the %s's telemetry are sent again",
+                         self.config.replayed_telemetry)
+        self._peer_armed = armed
+
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()
         if kind == "BAD_DATA":
@@ -398,6 +415,7 @@ class MavlinkLink:
             self.counts.add("before_autopilot")
             return
         if kind == GIMBAL_MESSAGE and sender[0] == self.peer[0]:   # the autopilot's or a gimbal device's
+            self._streams.arrived(kind, time.monotonic())
             if feed_gimbal_report(self.telemetry, msg, sender, self.peer, time.monotonic()):
                 self.counts.add("gimbal_reports")
             return
@@ -406,6 +424,9 @@ class MavlinkLink:
             return
         arrival = time.monotonic()
         self._last_heard_s = arrival
+        if kind == "HEARTBEAT":
+            self._note_armed(bool(int(msg.base_mode) & self._mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED))
+            return
         if kind == "TIMESYNC":
             if self._timesync is not None:
                 self._timesync.on_message(msg, arrival)
@@ -413,8 +434,8 @@ class MavlinkLink:
         if kind == "PARAM_VALUE" and self._setup_reader is not None:
             self._setup_reader.on_param_value(msg)
             return
-        if feed_telemetry(self.telemetry, msg, arrival, self._mavutil.mavlink) == "telemetry":
-            self._last_telemetry_s = arrival
+        if feed_telemetry(self.telemetry, msg, arrival, self._mavutil.mavlink):
+            self._streams.arrived(kind, arrival)
 
 
 def _finite(value: float) -> float:

@@ -16,11 +16,15 @@ TELEMETRY_MESSAGES = ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "LOC
 GIMBAL_MESSAGE = "GIMBAL_DEVICE_ATTITUDE_STATUS"   # read only when the telemetry has a gimbal (edge-run --gimbal)
 ESTIMATOR_MESSAGES = ("EKF_STATUS_REPORT", "ESTIMATOR_STATUS")   # ArduPilot's and PX4's, read when sent
 MAV_AUTOPILOT_INVALID = 8
-NOT_A_VEHICLE_TYPES = {6, 18, 26, 27, 30}  # GCS, onboard controller, gimbal, ADSB, camera
+# MAV_TYPEs that are not a vehicle's autopilot, though some run autopilot firmware and say ArduPilot in their
+# HEARTBEAT (an antenna tracker on ArduPilot's AntennaTracker): antenna tracker, GCS, onboard controller, gimbal,
+# ADS-B, camera, charging station, FLARM, servo, Open Drone ID, battery, parachute, log, OSD, IMU, GPS, winch,
+# illuminator, gripper.
+NOT_A_VEHICLE_TYPES = {5, 6, 18, 26, 27, 30, 31, 32, 33, 34, 36, 37, 38, 39, 40, 41, 42, 44, 48}
 
 
 def is_autopilot_heartbeat(msg: Any) -> bool:
-    """A HEARTBEAT from a vehicle's autopilot (not a ground station, companion, gimbal, camera or ADS-B)."""
+    """A HEARTBEAT from a vehicle's autopilot (not a ground station, antenna tracker, companion or peripheral)."""
     return msg.get_type() == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID \
         and msg.type not in NOT_A_VEHICLE_TYPES
 
