@@ -104,14 +104,14 @@ class FakeAutopilot:
 
     def healthy(self, boot_ms: Optional[int] = None, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0,
                 ned: Tuple[float, float, float] = (5.0, -3.0, -10.0), rel_alt_m: Optional[float] = None,
-                mav: object = None) -> None:
+                mav: object = None, vel: Tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
         m = self.mavutil.mavlink
         mav = mav or self.conn.mav
         ms = self.boot_ms() if boot_ms is None else boot_ms
         rel = -ned[2] if rel_alt_m is None else rel_alt_m
         mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE)
         mav.attitude_send(ms, roll, pitch, yaw, 0.0, 0.0, 0.0)
-        mav.local_position_ned_send(ms, *ned, 0.0, 0.0, 0.0)
+        mav.local_position_ned_send(ms, *ned, *vel)
         mav.global_position_int_send(ms, 0, 0, 0, int(rel * 1000) if math.isfinite(rel) else 0, 0, 0, 0, 0)
 
     def _run(self) -> None:

@@ -50,6 +50,50 @@ def test_a_position_faster_than_flight_starts_a_new_epoch_and_drops_the_old_posi
     assert buf.state_at(t + 11.0).position_epoch == 2
 
 
+def test_a_reset_of_a_few_metres_is_told_from_flight_by_the_autopilots_own_velocity():
+    """An EKF lane switch or a GPS glitch's recovery moves the local frame by a metre or a few in one step, well
+    within what 40 m/s allows: LOCAL_POSITION_NED's own velocity tells it from flight."""
+    buf, rng = TelemetryBuffer(), np.random.default_rng(1)
+
+    def fly(t0_s: float, seconds: float, north0_m: float, v0_mps: float, accel_mps2: float, step_s: float = 0.05,
+            velocity: bool = True) -> tuple:
+        t, north, v = t0_s, north0_m, v0_mps
+        for _ in range(int(round(seconds / step_s))):
+            t, north, v = t + step_s, north + v * step_s + 0.5 * accel_mps2 * step_s ** 2, v + accel_mps2 * step_s
+            buf.add_attitude(0.0, 0.0, 0.0, arrival_s=t, sample_s=t)
+            buf.add_position(north + rng.normal(0, 0.05), 0.0, -30.0, arrival_s=t, sample_s=t,
+                             velocity_ned_mps=(v + rng.normal(0, 0.1), 0.0, 0.0) if velocity else None)
+        return t, north, v
+
+    # Flight: 3 s accelerating at 5 m/s² to 15 m/s, 2 s braking hard at 12 m/s², samples 0.6 s apart at 8 m/s².
+    t, north, v = fly(100.0, 3.0, 0.0, 0.0, 5.0)
+    t, north, v = fly(t, 1.0, north, v, -12.0)
+    t, north, v = fly(t, 1.8, north, v, 8.0, step_s=0.6)
+    assert JUMP not in buf.rejected() and buf.newest_state().position_epoch == 0
+    # A 2 m reset sideways while flying at 17 m/s, the velocity smooth across it: a new epoch.
+    t += 0.05
+    north += v * 0.05
+    buf.add_position(north, 2.0, -30.0, arrival_s=t, sample_s=t, velocity_ned_mps=(v, 0.0, 0.0))
+    assert buf.rejected()[JUMP] == 1 and buf.state_at(t).position_epoch == 1
+    # Without velocities (a source that sends none) such a step is not caught: the 5 m / 40 m/s rule alone.
+    t, north, v = fly(t, 0.5, north, v, 0.0, velocity=False)
+    buf.add_position(north + v * 0.05, 4.0, -30.0, arrival_s=t + 0.05, sample_s=t + 0.05)
+    assert buf.rejected()[JUMP] == 1
+
+
+def test_velocities_that_do_not_describe_the_positions_are_not_believed_after_three_resets(caplog):
+    """A source that sends zero velocities while flying (a partial MAVLink implementation) at 4 Hz and 5 m/s: each
+    1.25 m step looks like a reset. After three within 10 s the velocities are not used, and said so; before the
+    fallback, fusion would have started over on every sample."""
+    buf = TelemetryBuffer()
+    for k in range(20):
+        t = 50.0 + 0.25 * k
+        buf.add_attitude(0.0, 0.0, 0.0, arrival_s=t, sample_s=t)
+        buf.add_position(1.25 * k, 0.0, -30.0, arrival_s=t, sample_s=t, velocity_ned_mps=(0.0, 0.0, 0.0))
+    assert buf.rejected()[JUMP] == 3 and buf.newest_state().position_epoch == 3
+    assert "does not describe its positions" in caplog.text
+
+
 def test_a_reboot_starts_a_new_epoch_even_without_a_jump():
     """A rebooted autopilot (its time_boot_ms restarts) sets its origin again: even a position close to the last
     one may name another place, so the epoch moves on."""
@@ -123,6 +167,23 @@ def test_edge_run_sends_no_committed_spot_across_a_position_jump(assets, tmp_pat
     after = fake.targets_between(SWITCH_S + 0.5, 1e9)
     assert len(after) >= 5                                               # not vacuous: targets still go out
     assert all(abs(t.x - ahead) < 1.0 for t in after), sorted({round(t.x) for t in after})
+    assert any("spot dropped: position or heading jumped" in text for text in fake.texts())
+
+
+def test_edge_run_drops_the_committed_spot_on_a_reset_of_a_few_metres(assets, tmp_path):  # noqa: F811
+    """The same as a 60 m jump, for a 2.5 m reset (inside the 5 m / 40 m/s rule) that LOCAL_POSITION_NED's own
+    velocity (zero: hovering) gives away. Before, the spot stayed committed in the moved frame and went out
+    re-expressed 2.5 m short of where it is."""
+    def script(fake, t: float) -> None:
+        fake.healthy(ned=(5.0, -3.0, -10.0) if t < SWITCH_S else (7.5, -3.0, -10.0), vel=(0.0, 0.0, 0.0))
+
+    fake, decisions, _ = run_against(assets, tmp_path, script, 5.0)
+    before = fake.targets_between(0.0, SWITCH_S)
+    assert len(before) >= 5 and any(d.get("committed_ned_m") is not None for d in decisions)
+    ahead = float(np.median([t.x for t in before]))
+    after = fake.targets_between(SWITCH_S + 0.5, 1e9)
+    assert len(after) >= 5
+    assert all(abs(t.x - ahead) < 1.0 for t in after), sorted({round(t.x, 1) for t in after})
     assert any("spot dropped: position or heading jumped" in text for text in fake.texts())
 
 

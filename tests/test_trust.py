@@ -188,14 +188,17 @@ def test_rangefinder_beyond_its_maximum_falls_back_to_relative_altitude(assets, 
 
 @pytest.mark.parametrize("autopilot", ["ardupilot", "px4"])
 def test_committed_spot_is_re_expressed_from_fresh_telemetry_while_out_of_evidence(assets, tmp_path, autopilot):
-    """Phase 2: the vehicle moves 2 m north and fusion has no new evidence (no height above ground): the
-    committed spot keeps going out, re-expressed in the new body frame (ArduPilot) or as the same local NED
-    point (PX4); phase 3: the autopilot goes silent and the spot is dropped."""
+    """Phase 2: the vehicle flies 2 m north (0.5 s at 4 m/s, with LOCAL_POSITION_NED's velocity: the same step
+    without it is an EKF reset, tests/test_position_jumps.py) and fusion has no new evidence (no height above
+    ground): the committed spot keeps going out, re-expressed in the new body frame (ArduPilot) or as the same
+    local NED point (PX4); phase 3: the autopilot goes silent and the spot is dropped."""
     def script(fake: FakeAutopilot, t: float) -> None:
         if t < SWITCH_S:
             fake.healthy()
         elif t < SWITCH_S + 1.5:
-            fake.healthy(ned=(7.0, -3.0, -10.0), rel_alt_m=-1.0)
+            moving = t < SWITCH_S + 0.5
+            north = 5.0 + 4.0 * (t - SWITCH_S) if moving else 7.0
+            fake.healthy(ned=(north, -3.0, -10.0), rel_alt_m=-1.0, vel=(4.0 if moving else 0.0, 0.0, 0.0))
 
     fake, decisions, _ = run_against(assets, tmp_path, script, 6.0, "--autopilot", autopilot)
     good = fake.targets_between(0.0, SWITCH_S)

@@ -25,6 +25,7 @@ import numpy as np
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Target, VehicleState
 from edge_landing.runtime.core.target_frames import target_ned
+from edge_landing.runtime.io.autopilot_peer import AutopilotPeer
 from edge_landing.runtime.io.autopilot_setup import AutopilotSetup, SetupCheck, SetupConfig
 from edge_landing.runtime.io.link_config import Autopilot, LinkConfig, LinkCounts
 from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: the link's public helpers)
@@ -46,7 +47,6 @@ from edge_landing.runtime.io.telemetry_feed import (  # noqa: F401  (TELEMETRY_M
     TELEMETRY_MESSAGES,
     feed_gimbal_report,
     feed_telemetry,
-    is_autopilot_heartbeat,
 )
 from edge_landing.runtime.io.timesync_client import TimesyncClient
 from edge_landing.runtime.io.tlog import TlogWriter
@@ -55,7 +55,6 @@ __all__ = ["Autopilot", "LinkConfig", "LinkCounts", "MavlinkLink", "check_url", 
            "NET_PREFIXES", "FRAME_BODY_FRD", "FRAME_LOCAL_NED", "TELEMETRY_MESSAGES"]
 log = logging.getLogger(__name__)
 FRAME_LOCAL_NED, FRAME_BODY_FRD = 1, 12
-HEARTBEAT_AUTOPILOTS = {3: Autopilot.ARDUPILOT, 12: Autopilot.PX4}   # MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_PX4
 TARGET_TYPE_VISION_OTHER = 3
 
 
@@ -66,7 +65,7 @@ class MavlinkLink:
         self.config = config
         self.telemetry = telemetry
         self.counts = LinkCounts()
-        self.peer: Optional[Tuple[int, int]] = None
+        self._peer = AutopilotPeer(config, lambda text, severity: self.send_status(text, severity))
         self._conn: Any = None
         self._mavutil: Any = None
         self._key: Optional[bytes] = None
@@ -84,7 +83,6 @@ class MavlinkLink:
         if telemetry.gimbal is not None:
             wanted[GIMBAL_MESSAGE] = config.telemetry_rate_hz
         self._streams = StreamRequests(wanted)
-        self._peer_armed = False                            # its newest HEARTBEAT's MAV_MODE_FLAG_SAFETY_ARMED
         self._last_request_s = -math.inf
         self._timesync: Optional[TimesyncClient] = None
         self._noise_seen = 0
@@ -171,10 +169,10 @@ class MavlinkLink:
             self.counts.add("dropped_not_heard")
             return False, ("link down: no autopilot heard yet" if heard == math.inf
                            else f"link down: autopilot not heard for {heard:.1f} s")
-        if self.config.replayed_telemetry and self._peer_armed:
+        replayed = self._peer.holds_replayed()
+        if replayed:
             self.counts.add("held_armed_replay")
-            return False, (f"held: the autopilot is armed and this target was made from the "
-                           f"{self.config.replayed_telemetry}'s telemetry, not its own")
+            return False, replayed
         if self.config.autopilot is Autopilot.PX4:
             xyz = target_ned(target, state)
             if xyz is None:
@@ -376,32 +374,10 @@ class MavlinkLink:
             self._send(m.MAVLink_command_long_message(self.peer[0], self.peer[1], m.MAV_CMD_SET_MESSAGE_INTERVAL,
                                                       0, msg_id, interval_us, 0, 0, 0, 0, 0))
 
-    def _choose_peer(self, msg: Any, sender: Tuple[int, int]) -> None:
-        """The first autopilot-type HEARTBEAT (of ``target_system`` when given) names the one autopilot."""
-        if not is_autopilot_heartbeat(msg):
-            return
-        if self.config.target_system is not None and sender[0] != self.config.target_system:
-            return
-        self.peer = sender
-        log.info("autopilot found: system %d component %d; telemetry from any other sender is ignored", *sender)
-        said = HEARTBEAT_AUTOPILOTS.get(int(msg.autopilot))
-        if said is not None and said is not self.config.autopilot:
-            log.warning("the autopilot's HEARTBEAT says it is %s, but edge-run was started with --autopilot %s: "
-                        "targets go out in the form %s reads (%s); check --autopilot", said.value,
-                        self.config.autopilot.value, self.config.autopilot.value,
-                        "LOCAL_NED positions" if self.config.autopilot is Autopilot.PX4 else "BODY_FRD directions")
-
-    def _note_armed(self, armed: bool) -> None:
-        """The autopilot's HEARTBEAT said it is (dis)armed: said when that holds or frees replayed targets."""
-        if armed != self._peer_armed and self.config.replayed_telemetry:
-            if armed:
-                log.warning("the autopilot is armed: targets made from the %s's telemetry (another flight's poses) "
-                            "are held until it disarms", self.config.replayed_telemetry)
-                self.send_status("edge: armed; replayed poses, targets held", severity=4)
-            else:
-                log.info("the autopilot is disarmed: targets made from the %s's telemetry are sent again",
-                         self.config.replayed_telemetry)
-        self._peer_armed = armed
+    @property
+    def peer(self) -> Optional[Tuple[int, int]]:
+        """(system, component) of the autopilot, once its HEARTBEAT was heard (autopilot_peer.py)."""
+        return self._peer.sender
 
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()
@@ -409,8 +385,8 @@ class MavlinkLink:
             return
         self.counts.add("received")
         sender = (int(msg.get_srcSystem()), int(msg.get_srcComponent()))
-        if kind == "HEARTBEAT" and self.peer is None:
-            self._choose_peer(msg, sender)
+        if kind == "HEARTBEAT":
+            self._peer.consider(msg, sender)
         if self.peer is None:
             self.counts.add("before_autopilot")
             return
@@ -425,7 +401,7 @@ class MavlinkLink:
         arrival = time.monotonic()
         self._last_heard_s = arrival
         if kind == "HEARTBEAT":
-            self._note_armed(bool(int(msg.base_mode) & self._mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED))
+            self._peer.heartbeat(msg)
             return
         if kind == "TIMESYNC":
             if self._timesync is not None:

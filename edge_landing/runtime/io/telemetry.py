@@ -13,9 +13,11 @@ The link thread calls ``add_*`` as messages arrive; the pipeline asks ``lookup(c
   too large height above ground, a rangefinder outside its own range); a rejected sample is counted by
   reason and never used. Nothing here raises on a bad number.
 - Frame moves: a local position farther from the last one than the vehicle can fly (``max_speed_mps``; an EKF
-  reset, a GPS glitch), a heading that turned faster than it can yaw (an EKF yaw reset) or a reboot (its clock
-  restarted, or ``forget``) starts a new ``position_epoch`` (VehicleState): samples from before are dropped, and
-  fusion and the committed spot, which live in local NED, start over.
+  reset, a GPS glitch) or, when the samples carry the autopilot's velocity, more than a metre from where that
+  velocity carried the last one (``min_reset_m``: a small reset), a heading that turned faster than it can yaw
+  (an EKF yaw reset) or a reboot (its clock restarted, or ``forget``) starts a new ``position_epoch``
+  (VehicleState): samples from before are dropped, and fusion and the committed spot, which live in local NED,
+  start over.
 - Freshness: a match is fresh only when the newest accepted attitude arrived no longer than ``fresh_s``
   ago on the companion's clock.
 - Round trips: when the autopilot answers TIMESYNC, its answers cap the clock offset (telemetry delivered late
@@ -43,6 +45,7 @@ from edge_landing.runtime.core.camera import Attitude
 from edge_landing.runtime.core.messages import TelemetryMatch, VehicleState
 from edge_landing.runtime.io.clock_offset import ClockOffset
 from edge_landing.runtime.io.gimbal import GimbalSeries
+from edge_landing.runtime.io.position_resets import VelocityCheck
 from edge_landing.runtime.io.series import TimeSeries
 from edge_landing.runtime.io.telemetry_config import TelemetryConfig
 
@@ -74,6 +77,7 @@ class TelemetryBuffer:
         self._position_epoch = 0
         self._reboots = 0
         self._estimator: Optional[Tuple[float, int, bool]] = None   # (arrival, flags, GPS glitch) of the newest
+        self._velocity = VelocityCheck(config)
         self._said_disagree = False
 
     def _all_series(self) -> Tuple[TimeSeries, ...]:
@@ -105,8 +109,9 @@ class TelemetryBuffer:
             return self.local_time(remote_ms, arrival_s) if _finite(remote_ms) and remote_ms > 0 else None
 
     def _add(self, series: TimeSeries, value: np.ndarray, remote_ms: Optional[float], arrival_s: Optional[float],
-             sample_s: Optional[float] = None) -> bool:
-        """``sample_s``: the sample's local time when the caller knows it (else mapped from ``remote_ms``)."""
+             sample_s: Optional[float] = None, velocity: Optional[np.ndarray] = None) -> bool:
+        """``sample_s``: the sample's local time when the caller knows it (else mapped from ``remote_ms``);
+        ``velocity``: a position sample's own NED velocity (m/s), when it carries one."""
         arrival = time.monotonic() if arrival_s is None else arrival_s
         with self._lock:
             if sample_s is None and remote_ms is not None and not (_finite(remote_ms) and remote_ms > 0):
@@ -117,7 +122,7 @@ class TelemetryBuffer:
             if t is None:
                 self._rejected[self._clock.dropped_why] += 1
                 return False
-            stale, why = self._frame_moved(series, t, value)
+            stale, why = self._frame_moved(series, t, value, velocity)
             if stale:
                 for old in stale:
                     old.clear()
@@ -126,10 +131,13 @@ class TelemetryBuffer:
             if not series.add(t, value, arrival):
                 self._rejected["sample not newer than the last one (out of order, repeated or a frozen clock)"] += 1
                 return False
+            if series is self._position:
+                self._velocity.kept(t, velocity)
             self.samples += 1
             return True
 
-    def _frame_moved(self, series: TimeSeries, t_s: float, value: np.ndarray) -> Tuple[Tuple[TimeSeries, ...], str]:
+    def _frame_moved(self, series: TimeSeries, t_s: float, value: np.ndarray, velocity: Optional[np.ndarray] = None
+                     ) -> Tuple[Tuple[TimeSeries, ...], str]:
         """The series to empty and the counted reason when this sample shows that the autopilot's frame moved
         since the newest sample of ``series`` (a reboot, a position or a heading faster than flight), else
         ((), "")."""
@@ -147,9 +155,16 @@ class TelemetryBuffer:
         dt = t_s - series.times[-1]
         if series is self._position:
             moved = float(np.linalg.norm(value - series.values[-1]))
-            if moved <= max(c.min_jump_m, c.max_speed_mps * dt):
+            off = self._velocity.off_m(series.times[-1], series.values[-1], t_s, value, velocity)
+            flown = moved <= max(c.min_jump_m, c.max_speed_mps * dt)
+            if flown and off is None:
                 return (), ""
-            log.warning("local position jumped %.1f m in %.2f s (EKF reset or glitch): " + _STARTS_OVER, moved, dt)
+            if flown:
+                self._velocity.reset_seen(t_s)
+                log.warning("local position moved %.1f m from where its velocity carried it in %.2f s (an EKF "
+                            "reset): " + _STARTS_OVER, off, dt)
+            else:
+                log.warning("local position jumped %.1f m in %.2f s (EKF reset or glitch): " + _STARTS_OVER, moved, dt)
             return (series,), "position jumped (the autopilot's frame moved): earlier positions dropped"
         turned = abs(math.remainder(float(value[2] - series.values[-1][2]), 2.0 * math.pi))
         if turned <= max(c.min_yaw_jump_rad, c.max_yaw_rate_rad_s * dt):
@@ -172,11 +187,18 @@ class TelemetryBuffer:
         return self._add(self._attitude, np.array([roll_rad, pitch_rad, yaw_rad]), remote_ms, arrival_s, sample_s)
 
     def add_position(self, north_m: float, east_m: float, down_m: float, remote_ms: Optional[float] = None,
-                     arrival_s: Optional[float] = None, sample_s: Optional[float] = None) -> bool:
+                     arrival_s: Optional[float] = None, sample_s: Optional[float] = None,
+                     velocity_ned_mps: Optional[Tuple[float, float, float]] = None) -> bool:
+        """``velocity_ned_mps``: the autopilot's velocity with the position (LOCAL_POSITION_NED's vx, vy, vz),
+        used only to tell a reset from flight; a non-finite or implausible one is ignored."""
         if not _finite(north_m, east_m, down_m) or max(abs(north_m), abs(east_m), abs(down_m)) > self.config.max_position_m:
             self.reject("local position not finite or too far")
             return False
-        return self._add(self._position, np.array([north_m, east_m, down_m]), remote_ms, arrival_s, sample_s)
+        velocity = None
+        if velocity_ned_mps is not None and _finite(*velocity_ned_mps):
+            v = np.array(velocity_ned_mps, dtype=np.float64)
+            velocity = v if float(np.linalg.norm(v)) <= self.config.max_speed_mps else None
+        return self._add(self._position, np.array([north_m, east_m, down_m]), remote_ms, arrival_s, sample_s, velocity)
 
     def add_relative_alt(self, alt_m: float, remote_ms: Optional[float] = None,
                          arrival_s: Optional[float] = None, sample_s: Optional[float] = None) -> bool:

@@ -41,6 +41,16 @@ class TelemetryConfig:
     # a new position epoch starts: NED evidence and a committed spot from before mean nothing in the new frame.
     max_speed_mps: float = 40.0
     min_jump_m: float = 5.0
+    # Where the samples carry the autopilot's own velocity (LOCAL_POSITION_NED does), a smaller move of the frame is
+    # caught too (position_resets.py): metres in one step while the velocity stays smooth (an EKF lane switch, a
+    # GPS glitch's recovery), which 5 m at 40 m/s let by. Over more than velocity_check_s only max_speed_mps judges;
+    # distrust_after such resets within distrust_s mean the velocities do not describe the positions (not used).
+    min_reset_m: float = 1.0
+    max_accel_mps2: float = 15.0
+    velocity_error_mps: float = 1.0
+    velocity_check_s: float = 1.0
+    distrust_after: int = 3
+    distrust_s: float = 10.0
     # A heading that turns faster than this (and by more than min_yaw_jump_rad) was reset, not flown (an EKF yaw
     # reset): everything placed in NED with the old heading is rotated about the vehicle, so a new epoch starts.
     max_yaw_rate_rad_s: float = 2.0 * math.pi

@@ -44,7 +44,7 @@ def feed_telemetry(telemetry: TelemetryBuffer, msg: Any, arrival_s: float, mavli
     if kind == "ATTITUDE":
         telemetry.add_attitude(msg.roll, msg.pitch, msg.yaw, msg.time_boot_ms, arrival_s)
     elif kind == "LOCAL_POSITION_NED":
-        telemetry.add_position(msg.x, msg.y, msg.z, msg.time_boot_ms, arrival_s)
+        telemetry.add_position(msg.x, msg.y, msg.z, msg.time_boot_ms, arrival_s, velocity_ned_mps=(msg.vx, msg.vy, msg.vz))
     elif kind == "GLOBAL_POSITION_INT":
         telemetry.add_relative_alt(msg.relative_alt / 1000.0, msg.time_boot_ms, arrival_s)
     elif kind == "DISTANCE_SENSOR" and msg.orientation == RANGEFINDER_DOWN:
