@@ -41,6 +41,7 @@ class FakeAutopilot:
         self.timesync_delay_s = 0.0
         self._answers: List[Tuple[float, int, int]] = []  # (due monotonic s, tc1 ns, ts1)
         self.params: Optional[Dict[str, float]] = dict(PRECLAND_PARAMS)   # None: PARAM_REQUEST_READ is ignored
+        self.armed = False                               # what healthy()'s HEARTBEAT says
         self._param_answers: List[str] = []
         self._t0 = time.monotonic()
         self._stop = threading.Event()
@@ -109,7 +110,8 @@ class FakeAutopilot:
         mav = mav or self.conn.mav
         ms = self.boot_ms() if boot_ms is None else boot_ms
         rel = -ned[2] if rel_alt_m is None else rel_alt_m
-        mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE)
+        base_mode = m.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0
+        mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode, 0, m.MAV_STATE_ACTIVE)
         mav.attitude_send(ms, roll, pitch, yaw, 0.0, 0.0, 0.0)
         mav.local_position_ned_send(ms, *ned, *vel)
         mav.global_position_int_send(ms, 0, 0, 0, int(rel * 1000) if math.isfinite(rel) else 0, 0, 0, 0, 0)

@@ -81,6 +81,26 @@ def test_a_reset_of_a_few_metres_is_told_from_flight_by_the_autopilots_own_veloc
     assert buf.rejected()[JUMP] == 1
 
 
+def test_a_step_of_the_clock_offset_is_not_taken_for_a_reset():
+    """LOCAL_POSITION_NED at 20 Hz, 12 m/s, that first arrives 0.25 s late and then 0.13 s late: the clock offset
+    follows the faster samples at once, so their local times step back by 0.12 s, and the local interval between the
+    last slow sample and the first fast one kept is 30 ms, not the 150 ms they were apart. The reset check reads the
+    autopilot's own stamps (1.4 m off at 12 m/s otherwise)."""
+    buf = TelemetryBuffer()
+    for k in range(120):
+        remote_ms = 600_000 + 50 * k
+        arrival_s = 100.0 + 0.05 * k + (0.25 if k < 60 else 0.13)
+        north = 12.0 * 0.05 * k
+        buf.add_attitude(0.0, 0.0, 0.0, remote_ms, arrival_s=arrival_s)
+        buf.add_position(north, 0.0, -30.0, remote_ms, arrival_s=arrival_s, velocity_ned_mps=(12.0, 0.0, 0.0))
+    assert JUMP not in buf.rejected() and buf.newest_state().position_epoch == 0
+    assert buf.newest_state().position_ned_m[0] == pytest.approx(12.0 * 0.05 * 119)
+    # Not vacuous: the same flight with one 2 m step sideways is a reset.
+    buf.add_position(12.0 * 0.05 * 120, 2.0, -30.0, 600_000 + 50 * 120, arrival_s=100.0 + 0.05 * 120 + 0.13,
+                     velocity_ned_mps=(12.0, 0.0, 0.0))
+    assert buf.rejected()[JUMP] == 1
+
+
 def test_velocities_that_do_not_describe_the_positions_are_not_believed_after_three_resets(caplog):
     """A source that sends zero velocities while flying (a partial MAVLink implementation) at 4 Hz and 5 m/s: each
     1.25 m step looks like a reset. After three within 10 s the velocities are not used, and said so; before the

@@ -43,6 +43,13 @@ def test_a_slow_stream_is_asked_again_with_back_off_and_a_reboot_asks_for_all():
     assert ask_times(streams, 4.0, 40.0, 40.1, reboots=1) == [(40.1, ["ATTITUDE", "DISTANCE_SENSOR"])]
     assert ask_times(streams, 4.0, 40.1, 43.0, reboots=1) == []
     assert streams.asked("ATTITUDE") == 4 and streams.asked("DISTANCE_SENSOR") == 5
+    # A reboot asks for a stream at its full rate too: the autopilot forgot our interval, and what still comes may
+    # be its stored rate, or samples from before the reboot was confirmed.
+    assert ask_times(streams, 20.0, 43.0, 50.0, reboots=1) == [(43.1, ["ATTITUDE", "DISTANCE_SENSOR"]),
+                                                                (49.1, ["DISTANCE_SENSOR"])]
+    assert ask_times(streams, 20.0, 50.0, 50.1, reboots=2) == [(50.1, ["ATTITUDE", "DISTANCE_SENSOR"])]
+    # Hysteresis: at 60 % of its rate (between half and three quarters) ATTITUDE is not asked again.
+    assert ask_times(streams, 12.0, 50.1, 60.0, reboots=2) == [(53.1, ["DISTANCE_SENSOR"]), (59.1, ["DISTANCE_SENSOR"])]
 
 def test_after_a_reboot_the_position_stream_is_asked_for_again_and_comes_back():
     """A TEST DOUBLE of an autopilot that forgets SET_MESSAGE_INTERVAL when it reboots, as ArduPilot and PX4 do:

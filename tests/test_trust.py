@@ -133,6 +133,21 @@ def test_an_antenna_tracker_heard_first_is_not_taken_for_the_autopilot(assets, t
     assert all(abs(t.y) < 0.3 and t.z == pytest.approx(AGL_M, abs=0.3) for t in good)   # level: not the tracker's
 
 
+def test_a_recorded_video_sends_no_target_to_an_armed_autopilot(assets, tmp_path):
+    """A video file is another flight's view, placed with this vehicle's live telemetry: the places it names are
+    not here. Sent while the autopilot is disarmed (the bench tests above), held once it arms."""
+    def script(fake: FakeAutopilot, t: float) -> None:
+        fake.armed = t >= SWITCH_S
+        fake.healthy()
+
+    fake, decisions, _ = run_against(assets, tmp_path, script)
+    assert_healthy_phase_sent(fake)
+    assert fake.targets_between(SWITCH_S + 0.5, 1e9) == []
+    held = [d for d in decisions if d["not_sent_because"].startswith("held: the autopilot is armed")]
+    assert held and "recorded video" in held[0]["not_sent_because"]
+    assert any("replay targets held" in text for text in fake.texts())
+
+
 def test_named_autopilot_that_is_not_there_gives_no_target(assets, tmp_path):
     fake, decisions, _ = run_against(assets, tmp_path, lambda f, t: f.healthy(), 2.0, "--mav-target-system", "42")
     assert fake.of_type("HEARTBEAT") and fake.of_type("LANDING_TARGET") == []

@@ -36,6 +36,7 @@ from edge_landing.cli.run_camera import (
     check_camera_flags,
     check_gimbal,
     check_tlog,
+    recorded_source,
     tlog_config,
 )
 from edge_landing.cli.run_landing import add_landing_arguments
@@ -305,8 +306,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
     # without it the frame's own pose is.
     own_telemetry = (src.kind is SourceKind.SIM or bool(cfg.poses) or bool(cfg.tlog)
                      or (src.kind is SourceKind.SIM_FOLLOW and not cfg.mav))
-    replayed = ("" if not own_telemetry else "sim camera" if src.kind is SourceKind.SIM
-                else "--tlog replay" if cfg.tlog else "--poses replay")
+    recorded = recorded_source(src.kind, cfg.camera, cfg.poses, cfg.tlog)
     link = None
     with contextlib.ExitStack() as stack:
         if cfg.mav:
@@ -317,12 +317,13 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
             link = MavlinkLink(LinkConfig(cfg.mav, cfg.autopilot, cfg.mav_sysid, cfg.mav_compid, cfg.mav_key,
                                           target_system=cfg.mav_target_system, tlog_out=tlog_out,
                                           setup_check=cfg.autopilot_check, max_target_hz=cfg.target_hz,
-                                          replayed_telemetry=replayed),
+                                          recorded_source=recorded),
                               link_telemetry).start()
             stack.callback(link.stop)
-            if own_telemetry:  # said once the link is up, not before a bad --mav is refused
-                log.warning("%s: targets are made from its own telemetry, not the autopilot's, and are sent only "
-                            "while the autopilot is disarmed", replayed)
+            if recorded:  # said once the link is up, not before a bad --mav is refused
+                log.warning("%s: its targets name places in another flight, so they go to the autopilot only while "
+                            "it is disarmed%s", recorded,
+                            "; its telemetry is its own, not the autopilot's" if own_telemetry else "")
             if not own_telemetry and cfg.telemetry_wait_s > 0:
                 wait_for_telemetry(telemetry, cfg.telemetry_wait_s, out)
         grabber = Grabber(src, telemetry=telemetry if own_telemetry else None).start()

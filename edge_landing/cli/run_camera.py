@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+from pathlib import Path
 from typing import Optional, Tuple
 
 from edge_landing.cli.common import check_number
@@ -129,3 +130,19 @@ def camera_geometry(grabber: Grabber, first: Frame, intrinsics: Optional[str], h
     if grabber.intrinsics is not None:
         return grabber.intrinsics.scaled(w, h), mount
     return Intrinsics.from_hfov(w, h, math.radians(hfov_deg)), mount
+
+
+def recorded_source(kind: SourceKind, camera: str, poses: Optional[str], tlog: Optional[str]) -> str:
+    """What the frames are when they are not this flight's live view (LinkConfig.recorded_source), '' when they
+    are: a camera device, a stream, a pipe, or the synthetic camera that renders the autopilot's own pose."""
+    if kind is SourceKind.SIM:
+        return "sim camera"
+    if tlog:
+        return "--tlog replay"
+    if poses:
+        return "--poses replay"
+    if kind is SourceKind.FOLDER:
+        return "image folder"
+    if kind is SourceKind.FILE and Path(camera).is_file():   # a FIFO a live pipeline writes is not a recording
+        return "recorded video"
+    return ""

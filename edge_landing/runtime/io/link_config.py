@@ -43,9 +43,10 @@ class LinkConfig:
     reconnect_max_s: float = 5.0
     tlog_out: str = ""             # write every packet received here as a .tlog (edge-run --flight-record)
     setup_check: SetupCheck = SetupCheck.HOLD   # ArduPilot's PLND_* parameters: read, and hold misplaced targets
-    # What the frames' telemetry is when it is not this autopilot's ("--tlog replay", "sim camera", ...; '' when it
-    # is): targets are then made from another flight's poses, and go out only while the autopilot is disarmed.
-    replayed_telemetry: str = ""
+    # What the frames are when they are not this flight's live view ("--tlog replay", "recorded video", "sim
+    # camera", ...; '' for a camera): their targets name places in another flight, so they go out only while the
+    # vehicle is known to be disarmed (autopilot_peer.py).
+    recorded_source: str = ""
 
     def __post_init__(self) -> None:
         # MAVLink packs ids in one byte: a larger one would kill the link thread at its first heartbeat.
@@ -62,7 +63,7 @@ class LinkCounts:
     KEYS = ("targets", "heartbeats", "statustext", "received", "send_errors", "reconnects",
             "skipped_px4_no_position", "dropped_old_targets", "dropped_backed_up", "dropped_not_heard",
             "other_senders", "before_autopilot", "bad_signature", "timesync_requests", "timesync_answers", "noise_bytes",
-            "gimbal_reports", "held_setup", "rate_capped", "held_armed_replay")
+            "gimbal_reports", "held_setup", "rate_capped", "held_recorded_armed")
 
     def __init__(self) -> None:
         self._lock = threading.Lock()

@@ -169,10 +169,10 @@ class MavlinkLink:
             self.counts.add("dropped_not_heard")
             return False, ("link down: no autopilot heard yet" if heard == math.inf
                            else f"link down: autopilot not heard for {heard:.1f} s")
-        replayed = self._peer.holds_replayed()
-        if replayed:
-            self.counts.add("held_armed_replay")
-            return False, replayed
+        recorded = self._peer.holds_recorded(now)
+        if recorded:
+            self.counts.add("held_recorded_armed")
+            return False, recorded
         if self.config.autopilot is Autopilot.PX4:
             xyz = target_ned(target, state)
             if xyz is None:
@@ -395,13 +395,14 @@ class MavlinkLink:
             if feed_gimbal_report(self.telemetry, msg, sender, self.peer, time.monotonic()):
                 self.counts.add("gimbal_reports")
             return
+        arrival = time.monotonic()
+        if kind == "HEARTBEAT":   # whether the vehicle is armed, known before the autopilot counts as heard
+            self._peer.heartbeat(msg, sender, arrival)
         if sender != self.peer:
             self.counts.add("other_senders")
             return
-        arrival = time.monotonic()
         self._last_heard_s = arrival
         if kind == "HEARTBEAT":
-            self._peer.heartbeat(msg)
             return
         if kind == "TIMESYNC":
             if self._timesync is not None:

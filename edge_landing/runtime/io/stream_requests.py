@@ -8,7 +8,9 @@ every stream has stopped: after a reboot ATTITUDE at its stored 4 Hz would other
 LOCAL_POSITION_NED never came back. A stream that stays slow (a radio that cannot carry more, a message the
 autopilot does not send: DISTANCE_SENSOR without a rangefinder, the other autopilot's estimator status) is asked
 again less and less often, ``first_retry_s`` doubling up to ``max_retry_s``; every stream is asked for at once after
-a reboot, and a stream back at its rate starts the back-off over.
+a reboot, whatever its rate (the arrivals counted before it are forgotten), and a stream back at ``flowing_share``
+of its rate starts the back-off over (a radio-limited stream hovering near ``low_share`` is not re-asked on every
+crossing).
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ class StreamRequestConfig:
 
     window_s: float = 2.0       # a stream's rate is counted over this long
     low_share: float = 0.5      # below this share of the rate asked for, it is asked for again
+    flowing_share: float = 0.75  # at this share or more it flows: the back-off starts over
     first_retry_s: float = 3.0  # the first wait between two requests of a slow stream (then doubling) ...
     max_retry_s: float = 60.0   # ... up to this
 
@@ -40,6 +43,7 @@ class _Stream:
         self.retry_s = config.first_retry_s
         self.asked = 0
         self.was_flowing = False
+        self.forced = False    # asked for on the next ``due`` whatever its rate (after a reboot)
 
 
 class StreamRequests:
@@ -70,15 +74,17 @@ class StreamRequests:
             log.info("the autopilot rebooted: its telemetry streams are asked for again")
             for stream in self._streams.values():
                 stream.next_ask_s, stream.retry_s, stream.was_flowing = -math.inf, self.config.first_retry_s, False
+                stream.arrivals.clear()
+                stream.forced = True
         out = []
         for name, stream in self._streams.items():
             rate = self.rate_hz(name, now_s)
-            if rate >= self.config.low_share * stream.rate_hz:
+            if rate >= self.config.flowing_share * stream.rate_hz:
                 stream.retry_s, stream.was_flowing = self.config.first_retry_s, True
                 stream.next_ask_s = min(stream.next_ask_s, now_s)
+            if not stream.forced and (rate >= self.config.low_share * stream.rate_hz or now_s < stream.next_ask_s):
                 continue
-            if now_s < stream.next_ask_s:
-                continue
+            stream.forced = False
             if stream.was_flowing:
                 log.info("%s arrives at %.1f/s, %.0f/s asked for: asked for again", name, rate, stream.rate_hz)
                 stream.was_flowing = False

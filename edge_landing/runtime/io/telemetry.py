@@ -13,11 +13,11 @@ The link thread calls ``add_*`` as messages arrive; the pipeline asks ``lookup(c
   too large height above ground, a rangefinder outside its own range); a rejected sample is counted by
   reason and never used. Nothing here raises on a bad number.
 - Frame moves: a local position farther from the last one than the vehicle can fly (``max_speed_mps``; an EKF
-  reset, a GPS glitch) or, when the samples carry the autopilot's velocity, more than a metre from where that
-  velocity carried the last one (``min_reset_m``: a small reset), a heading that turned faster than it can yaw
-  (an EKF yaw reset) or a reboot (its clock restarted, or ``forget``) starts a new ``position_epoch``
-  (VehicleState): samples from before are dropped, and fusion and the committed spot, which live in local NED,
-  start over.
+  reset, a GPS glitch) or, when the samples carry the autopilot's velocity, farther from where that velocity
+  carried the last one than flying allows (a metre or more: a small reset, ``position_resets.py``), a heading
+  that turned faster than it can yaw (an EKF yaw reset) or a reboot (its clock restarted, or ``forget``) starts
+  a new ``position_epoch`` (VehicleState): samples from before are dropped, and fusion and the committed spot,
+  which live in local NED, start over.
 - Freshness: a match is fresh only when the newest accepted attitude arrived no longer than ``fresh_s``
   ago on the companion's clock.
 - Round trips: when the autopilot answers TIMESYNC, its answers cap the clock offset (telemetry delivered late
@@ -122,7 +122,8 @@ class TelemetryBuffer:
             if t is None:
                 self._rejected[self._clock.dropped_why] += 1
                 return False
-            stale, why = self._frame_moved(series, t, value, velocity)
+            remote_s = remote_ms / 1000.0 if sample_s is None and remote_ms is not None else None
+            stale, why = self._frame_moved(series, t, value, velocity, remote_s)
             if stale:
                 for old in stale:
                     old.clear()
@@ -132,12 +133,12 @@ class TelemetryBuffer:
                 self._rejected["sample not newer than the last one (out of order, repeated or a frozen clock)"] += 1
                 return False
             if series is self._position:
-                self._velocity.kept(t, velocity)
+                self._velocity.kept(t, velocity, remote_s)
             self.samples += 1
             return True
 
-    def _frame_moved(self, series: TimeSeries, t_s: float, value: np.ndarray, velocity: Optional[np.ndarray] = None
-                     ) -> Tuple[Tuple[TimeSeries, ...], str]:
+    def _frame_moved(self, series: TimeSeries, t_s: float, value: np.ndarray, velocity: Optional[np.ndarray] = None,
+                     remote_s: Optional[float] = None) -> Tuple[Tuple[TimeSeries, ...], str]:
         """The series to empty and the counted reason when this sample shows that the autopilot's frame moved
         since the newest sample of ``series`` (a reboot, a position or a heading faster than flight), else
         ((), "")."""
@@ -147,6 +148,7 @@ class TelemetryBuffer:
             # estimator started over too, and samples from before were timed with the old clock's offset: none is
             # interpolated with, or matched in place of, the new autopilot's.
             self._reboots = self._clock.reboots
+            self._velocity = VelocityCheck(self.config)   # a new estimator: its velocities are judged afresh
             log.warning("the autopilot's clock restarted (a reboot): " + _STARTS_OVER)
             return self._all_series(), \
                 "autopilot rebooted (its clock restarted): every earlier sample dropped"
@@ -155,7 +157,7 @@ class TelemetryBuffer:
         dt = t_s - series.times[-1]
         if series is self._position:
             moved = float(np.linalg.norm(value - series.values[-1]))
-            off = self._velocity.off_m(series.times[-1], series.values[-1], t_s, value, velocity)
+            off = self._velocity.off_m(series.times[-1], series.values[-1], t_s, value, velocity, remote_s)
             flown = moved <= max(c.min_jump_m, c.max_speed_mps * dt)
             if flown and off is None:
                 return (), ""
@@ -263,6 +265,7 @@ class TelemetryBuffer:
             for s in self._all_series():
                 s.clear()
             self._clock.reset()
+            self._velocity = VelocityCheck(self.config)
             self._position_epoch += 1
 
     def timesync_request(self, now_s: float) -> int:

@@ -10,23 +10,24 @@ from typing import Any, Tuple
 from edge_landing.runtime.io.telemetry import RANGEFINDER_DOWN, TelemetryBuffer
 
 __all__ = ["TELEMETRY_MESSAGES", "ESTIMATOR_MESSAGES", "GIMBAL_MESSAGE", "MAV_AUTOPILOT_INVALID",
-           "NOT_A_VEHICLE_TYPES", "is_autopilot_heartbeat", "feed_telemetry", "feed_gimbal_report"]
+           "VEHICLE_TYPES", "is_autopilot_heartbeat", "feed_telemetry", "feed_gimbal_report"]
 
 TELEMETRY_MESSAGES = ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "LOCAL_POSITION_NED")
 GIMBAL_MESSAGE = "GIMBAL_DEVICE_ATTITUDE_STATUS"   # read only when the telemetry has a gimbal (edge-run --gimbal)
 ESTIMATOR_MESSAGES = ("EKF_STATUS_REPORT", "ESTIMATOR_STATUS")   # ArduPilot's and PX4's, read when sent
 MAV_AUTOPILOT_INVALID = 8
-# MAV_TYPEs that are not a vehicle's autopilot, though some run autopilot firmware and say ArduPilot in their
-# HEARTBEAT (an antenna tracker on ArduPilot's AntennaTracker): antenna tracker, GCS, onboard controller, gimbal,
-# ADS-B, camera, charging station, FLARM, servo, Open Drone ID, battery, parachute, log, OSD, IMU, GPS, winch,
-# illuminator, gripper.
-NOT_A_VEHICLE_TYPES = {5, 6, 18, 26, 27, 30, 31, 32, 33, 34, 36, 37, 38, 39, 40, 41, 42, 44, 48}
+# MAV_TYPEs of vehicles (MAVLink common.xml): generic, fixed wing, quad, coaxial, helicopter, airship, balloon,
+# rocket, rover, boat, submarine, hexa, octo, tri, flapping wing, kite, the VTOLs, parafoil, dodeca, deca, generic
+# multirotor, spacecraft, quadruped, gyrodyne. Anything else (an antenna tracker, which runs ArduPilot's
+# AntennaTracker, says ArduPilot and streams its own ATTITUDE; a ground station, companion, gimbal, camera, ADS-B,
+# radio, or a type newer than this list) is never taken for the autopilot.
+VEHICLE_TYPES = frozenset({0, 1, 2, 3, 4, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 19, 20, 21, 22, 23, 24, 25,
+                           28, 29, 35, 43, 45, 46, 47})
 
 
 def is_autopilot_heartbeat(msg: Any) -> bool:
     """A HEARTBEAT from a vehicle's autopilot (not a ground station, antenna tracker, companion or peripheral)."""
-    return msg.get_type() == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID \
-        and msg.type not in NOT_A_VEHICLE_TYPES
+    return msg.get_type() == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID and msg.type in VEHICLE_TYPES
 
 
 def feed_telemetry(telemetry: TelemetryBuffer, msg: Any, arrival_s: float, mavlink: Any) -> str:
@@ -47,7 +48,9 @@ def feed_telemetry(telemetry: TelemetryBuffer, msg: Any, arrival_s: float, mavli
         telemetry.add_position(msg.x, msg.y, msg.z, msg.time_boot_ms, arrival_s, velocity_ned_mps=(msg.vx, msg.vy, msg.vz))
     elif kind == "GLOBAL_POSITION_INT":
         telemetry.add_relative_alt(msg.relative_alt / 1000.0, msg.time_boot_ms, arrival_s)
-    elif kind == "DISTANCE_SENSOR" and msg.orientation == RANGEFINDER_DOWN:
+    elif kind == "DISTANCE_SENSOR":
+        if msg.orientation != RANGEFINDER_DOWN:
+            return ""   # a proximity sensor's: not the height above ground (nor its stream)
         telemetry.add_rangefinder(msg.current_distance / 100.0, msg.time_boot_ms, arrival_s,
                                   min_m=msg.min_distance / 100.0, max_m=msg.max_distance / 100.0)
     return "telemetry"
