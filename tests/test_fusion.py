@@ -197,13 +197,13 @@ def test_flat_votes_match_the_shared_hvo_labels():
     labels = hvo_from_normals(normals_from_depth(render.depth_m, INTR), up_cam)
     fuser = LandingFuser(replace(CFG, working_hw=(INTR.height, INTR.width), depth_smoothing_px=1), INTR, MOUNT)
     captured = {}
-    original = fuser._grid.add
+    original = fuser._grid.add_cells
 
-    def spy(north, east, down, horizontal, flat, offset):
-        captured["flat"] = flat
-        return original(north, east, down, horizontal, flat, offset)
+    def spy(samples):
+        captured["flat"] = samples[4].copy()          # rows: row, column, height, horizontal, flat
+        return original(samples)
 
-    fuser._grid.add = spy
+    fuser._grid.add_cells = spy
     fuser.update(prediction(render, hvo=False))
     # Depth-derived flat share of all samples equals the share of samples from H-labelled pixels.
     inner = labels[1:-1, 1:-1]

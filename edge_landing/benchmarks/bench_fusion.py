@@ -7,8 +7,10 @@ fed as metric depth with one-hot HVO, the way the network's outputs reach fusion
 vehicle a little (and so the grid, in NED mode). Prints one JSON object: latency p50/p90/p99 in ms after
 warm-up, frames per second, valid-target share, the thread's CPU time per frame (p50/p99: what the frame
 costs, less inflated by other processes than wall time) and the machine's load average, because on a
-shared machine a loaded CPU inflates every wall-clock figure. There is no camera image, so motion geometry
-never runs and no spot is confirmed (valid share 0): this times the network's grid and spot proposal only.
+shared machine a loaded CPU inflates every wall-clock figure. Thread pools as edge-run sets them: OpenCV at
+``--opencv-threads`` (1; the distance transform alone takes twice as long on one thread), BLAS at 1.
+There is no camera image, so motion geometry never runs and no spot is confirmed (valid share 0): this times
+the network's grid and spot proposal only.
 Fusion with geometry confirmation, on a rendered flight: ``benchmarks.bench_motion`` (frames without a stage run).
 """
 from __future__ import annotations
@@ -29,6 +31,7 @@ from edge_landing.runtime.core.camera import (
     Mount,
     ned_from_camera,
 )
+from edge_landing.runtime.core.cpu_features import cpu_features
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Prediction, VehicleState
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
@@ -129,7 +132,11 @@ def _main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--working", type=int, nargs=2, default=d.working_hw, metavar=("H", "W"))
     ap.add_argument("--mode", default=d.mode, choices=("ned", "vehicle"))
     ap.add_argument("--seed", type=int, default=d.seed)
+    ap.add_argument("--opencv-threads", type=int, default=1,
+                    help="OpenCV threads (edge-run uses 1; 0 leaves OpenCV's default)")
     a = ap.parse_args(argv)
+    if a.opencv_threads < 0:
+        raise InputError(f"--opencv-threads must be >= 0, got {a.opencv_threads}")
     check_number("--altitude", a.altitude, 0.0, 1000.0, lo_open=True, unit="metres")
     check_seed("--seed", a.seed)
     for flag, (h, w) in (("--input", a.input), ("--working", a.working)):
@@ -137,7 +144,11 @@ def _main(argv: Sequence[str] | None = None) -> int:
             raise InputError(f"{flag} must be two sizes between 16 and 4096 pixels (H W), got {h} {w}")
     cfg = BenchConfig(frames=a.frames, warmup=a.warmup, altitude_m=a.altitude, input_hw=tuple(a.input),
                       working_hw=tuple(a.working), mode=a.mode, seed=a.seed)
-    print(json.dumps(run(cfg)))
+    from edge_landing.runtime.pipeline.threads import SideThreads, limit_side_threads
+    limit_side_threads(SideThreads(opencv=a.opencv_threads, blas=1))     # as edge-run sets them
+    result = run(cfg)
+    result.update(opencv_threads=a.opencv_threads or None, cpu=cpu_features().summary())
+    print(json.dumps(result))
     return 0
 
 

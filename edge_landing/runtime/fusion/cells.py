@@ -44,7 +44,7 @@ def fill_sampling_holes(sums: np.ndarray, min_count: float, min_neighbours: int,
     pooled = gathered[:, 0].copy()
     for j in range(1, 8):
         pooled += gathered[:, j]
-    out = flat if in_place and np.shares_memory(flat, sums) else flat.copy()
+    out = flat if in_place else flat.copy()               # (a reshape that copied is returned filled all the same)
     out[:, holes] = pooled
     return out.reshape(sums.shape)
 

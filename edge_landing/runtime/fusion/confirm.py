@@ -51,16 +51,17 @@ def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, fl
     out = [np.asarray(first, np.float64)]
     if idx.size == 0 or count <= 1:
         return np.stack(out)
-    rows, cols = np.divmod(idx, view.shape[1])
+    rows = idx // view.shape[1]                  # (np.divmod and np.hypot are several times slower)
+    cols = idx - rows * view.shape[1]
     north = view.north0_m + (rows + 0.5) * view.cell_m
     east = view.east0_m + (cols + 0.5) * view.cell_m
     score = np.minimum(view.clearance_m.ravel()[idx], config.clearance_saturation_m) \
-        - config.travel_penalty_per_m * np.hypot(north - here_ne[0], east - here_ne[1])
+        - config.travel_penalty_per_m * np.sqrt(np.square(north - here_ne[0]) + np.square(east - here_ne[1]))
     # Greedy in score order (ties: grid order), vectorised: each pick is the best cell still far enough from all
     # taken so far; thousands of landable cells would otherwise be walked one by one in Python.
     free = np.ones(idx.size, dtype=bool)
     for _ in range(count - 1):
-        free &= np.hypot(north - out[-1][0], east - out[-1][1]) >= separation_m
+        free &= np.square(north - out[-1][0]) + np.square(east - out[-1][1]) >= separation_m * separation_m
         if not free.any():
             break
         i = int(np.argmax(np.where(free, score, -np.inf)))

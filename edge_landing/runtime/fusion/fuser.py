@@ -47,11 +47,12 @@ from edge_landing.runtime.core.messages import EVIDENCE_NETWORK_ONLY, Prediction
 from edge_landing.runtime.core.target_frames import aim_from_offset
 from edge_landing.runtime.fusion.config import FusionConfig
 from edge_landing.runtime.fusion.confirm import GeometryConfirmation, focus_candidates
-from edge_landing.runtime.fusion.grid import CellRules, GridView, TopDownGrid, splat_samples
+from edge_landing.runtime.fusion.grid import CellRules, GridView, TopDownGrid
 from edge_landing.runtime.fusion.landing import Choice, KeptSpot, choose_spot
 from edge_landing.runtime.fusion.motion import ParallaxResult
 from edge_landing.runtime.fusion.motion_grid import GeometryView
 from edge_landing.runtime.fusion.result import FusionResult
+from edge_landing.runtime.fusion.splat import footprint_keys, splat
 
 __all__ = ["DEGRADED_NO_HVO", "FusionConfig", "LandingFuser"]
 
@@ -64,6 +65,11 @@ def _resize(a: np.ndarray, hw: tuple[int, int], interpolation: int) -> np.ndarra
     if a.shape[:2] == tuple(hw):
         return a
     return cv2.resize(a, (hw[1], hw[0]), interpolation=interpolation)
+
+
+def _all_within(a: np.ndarray, lo: float, hi: float) -> bool:
+    """Whether every value of ``a`` is in [lo, hi]: NaN propagates through min and max, so it fails too."""
+    return bool(np.min(a) >= lo and np.max(a) <= hi)
 
 
 def _smooth_depth(depth: np.ndarray, size: int, max_step: float) -> np.ndarray:
@@ -100,7 +106,10 @@ class LandingFuser:
         self.mount = mount
         h, w = config.working_hw
         self.intrinsics = intrinsics.scaled(w, h)
-        self._rays = self.intrinsics.pixel_rays()
+        # Rays as 3×(H·W) rows for one matrix product per frame, and each interior pixel's index in the image.
+        self._rays_planar = np.ascontiguousarray(self.intrinsics.pixel_rays().reshape(-1, 3).T)
+        interior = np.arange((h - 2) * (w - 2))
+        self._interior_to_full = interior + 2 * (interior // (w - 2)) + w + 1
         self._grid = TopDownGrid(config.cell_m, config.grid_radius_m)
         self._view: Optional[GridView] = None
         self._mode: Optional[str] = None
@@ -197,7 +206,8 @@ class LandingFuser:
             if hvo.ndim != 3 or hvo.shape[2] != 3:
                 return none(f"invalid prediction: HVO probabilities must be H×W×3, got shape {hvo.shape}")
             hvo_h = _resize(np.ascontiguousarray(hvo[..., 0], dtype=np.float32), cfg.working_hw, cv2.INTER_AREA)
-            hvo_h = np.where(np.isfinite(hvo_h), np.clip(hvo_h, 0.0, 1.0), 0.0)  # unknown = not horizontal
+            if not _all_within(hvo_h, 0.0, 1.0):                 # (the usual case needs no pass to fix it)
+                hvo_h = np.where(np.isfinite(hvo_h), np.clip(hvo_h, 0.0, 1.0), 0.0)  # unknown = not horizontal
 
         attitude, position = Attitude(), None
         if state is not None:
@@ -213,8 +223,9 @@ class LandingFuser:
         # Invalid (NaN, inf, 0, negative or absurdly far) becomes NaN before resizing so it cannot blend into
         # real depth. The far bound keeps the normals' float32 products finite (1e30 m overflowed them).
         depth = np.asarray(depth, dtype=np.float32)
-        with np.errstate(invalid="ignore"):
-            depth = np.where((depth > 0) & (depth <= _MAX_DEPTH_M), depth, np.float32(np.nan))
+        if not (np.min(depth) > 0 and np.max(depth) <= _MAX_DEPTH_M):   # (NaN fails both: the usual case skips this)
+            with np.errstate(invalid="ignore"):
+                depth = np.where((depth > 0) & (depth <= _MAX_DEPTH_M), depth, np.float32(np.nan))
         # Linear, not nearest: it samples the working pixel's centre exactly (nearest is off by half a source
         # pixel, a height bias); NaN spreads to neighbours, which only removes points.
         depth = _resize(depth, cfg.working_hw, cv2.INTER_LINEAR)
@@ -308,12 +319,10 @@ class LandingFuser:
         """
         cfg = self.config
         # Planar layout (3×H×W): level point = depth · (R @ ray), ray = (u, v, 1) separable in u and v.
-        u, v = self._rays[0, :, 0], self._rays[:, 0, 1]
-        dirs = r_nc[:, 0, None, None] * u[None, None, :] + r_nc[:, 1, None, None] * v[None, :, None] \
-            + r_nc[:, 2, None, None]
-        pts = dirs * depth[None]                                       # x north, y east, z down
         h, w = depth.shape
-        # Central differences = two-pixel steps; halved below only for the pixels kept.
+        pts = np.matmul(r_nc, self._rays_planar).reshape(3, h, w)     # level ray directions (one small product)
+        pts *= depth[None]                                             # x north, y east, z down
+        # Central differences (two-pixel steps): the normal's recipe and each pixel's footprint.
         su = pts[:, 1:-1, 2:] - pts[:, 1:-1, :-2]
         sv = pts[:, 2:, 1:-1] - pts[:, :-2, 1:-1]
         nx = su[1] * sv[2] - su[2] * sv[1]
@@ -327,20 +336,32 @@ class LandingFuser:
         if idx.size == 0:
             return 0
         # np.take with integer indices on contiguous arrays: boolean masks on strided views and fancy
-        # indexing are several times slower here.
-        full = idx + 2 * (idx // (w - 2)) + w + 1                      # the same pixels in the h×w image
-        p = np.take(pts.reshape(3, -1), full, axis=1)
-        half_u = np.take(su.reshape(3, -1), idx, axis=1) * np.float32(0.5)
-        half_v = np.take(sv.reshape(3, -1), idx, axis=1) * np.float32(0.5)
-        cos2 = np.float32(math.cos(cfg.max_slope_rad) ** 2)
+        # indexing are several times slower here. Pixels are put in lattice order once (fusion.splat).
+        su, sv, pts = su.reshape(3, -1), sv.reshape(3, -1), pts.reshape(3, -1)
+        keys = footprint_keys(np.take(su[:2], idx, axis=1), np.take(sv[:2], idx, axis=1), cfg.splat_spacing_m,
+                              cfg.max_footprint_m, cfg.max_samples_per_axis)
+        order = np.argsort(keys, kind="stable")
+        keys, idx = np.take(keys, order), np.take(idx, order)
+        full = np.take(self._interior_to_full, idx)                   # the same pixels in the h×w image
+        # Per pixel and quantity (row, column, height, horizontal, flat): step u, step v, value (fusion.splat),
+        # in the grid's cell units so that the samples need no further arithmetic before binning.
+        shift, scale = self._grid.cell_frame((0.0, 0.0, 0.0) if position is None else tuple(position.tolist()))
+        columns = np.empty((5, 3, idx.size), dtype=np.float32)
+        for k in range(3):
+            np.take(su[k], idx, out=columns[k, 0])
+            np.take(sv[k], idx, out=columns[k, 1])
+            np.take(pts[k], full, out=columns[k, 2])
+        columns[:3, 2] += shift[:, None]
+        columns[:2] *= scale
+        columns[3:, :2] = 0.0
+        if hvo_h is not None:
+            np.take(hvo_h.reshape(-1), full, out=columns[3, 2])
+        else:
+            columns[3, 2] = 1.0
         nz_k = np.take(nz.reshape(-1), idx)
-        # Votes per pixel in float64, the binning's weight type: gathered per sample below without a conversion.
-        flat_px = (nz_k * nz_k >= cos2 * np.take(nn.reshape(-1), idx)).astype(np.float64)
-        hor_px = np.take(hvo_h.reshape(-1), full).astype(np.float64) if hvo_h is not None else np.ones_like(flat_px)
-        samples, pix = splat_samples(p, half_u, half_v, cfg.splat_spacing_m, cfg.max_footprint_m,
-                                     cfg.max_samples_per_axis)
-        offset = (0.0, 0.0, 0.0) if position is None else tuple(float(x) for x in position)
-        return self._grid.add(samples[0], samples[1], samples[2], np.take(hor_px, pix), np.take(flat_px, pix), offset)
+        cos2 = np.float32(math.cos(cfg.max_slope_rad) ** 2)
+        np.greater_equal(nz_k * nz_k, cos2 * np.take(nn.reshape(-1), idx), out=columns[4, 2], casting="unsafe")
+        return self._grid.add_cells(splat(columns, keys, cfg.max_samples_per_axis))
 
     def _make_target(self, pred: Prediction, choice: Choice, pose: tuple[Attitude, Mount],
                      position: Optional[np.ndarray], have_hvo: bool, timings: dict[str, float],

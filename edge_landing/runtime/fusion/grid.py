@@ -7,30 +7,22 @@ large enough horizontal and flat shares, judged within one frame; across frames 
 verdicts are accumulated, never raw heights (see :class:`TopDownGrid`). Clearance is the metric distance
 to the nearest cell that is not landable.
 
-Why splat instead of dropping one point per pixel: at 30-90 m and ~160 pixels across, one pixel covers
-0.5-2 m of ground, more than a 0.5 m cell, so plain point binning leaves most cells empty ("unobserved")
-and nothing would ever be landable. Each pixel is therefore spread over its own footprint (the half
-steps to its neighbours), sampled every ``spacing_m``; a pixel whose footprint is larger than
-``max_footprint_m`` straddles a depth discontinuity and stays a single point (its gap is unobserved).
-Samples about one cell apart can still miss a cell inside observed ground; such a cell, with most of its
-8 neighbours observed, takes their pooled samples (:func:`fill_sampling_holes`) instead of counting as an
-obstacle. Measured on flat ground at 30-90 m and several yaws: the landable area and the best clearance
-are the same as with 0.35 m spacing and no filling, for about half the samples.
+Samples come from fusion.splat: each pixel spread over its ground footprint.
 """
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
+import cv2
 import numpy as np
 
 from edge_landing.runtime.fusion.cells import clearance_from_mask, fill_sampling_holes
 from edge_landing.runtime.fusion.grid_view import GridView
 
 __all__ = ["CellRules", "GridView", "TopDownGrid", "clearance_from_mask", "fill_sampling_holes",
-           "judge_cells", "recentre", "splat_samples"]
+           "judge_cells", "recentre"]
 
 # Sum arrays kept per cell, in this order: weight (count), height, height², horizontal votes, flat votes.
 _N_SUMS = 5
@@ -54,15 +46,6 @@ class CellRules:
     min_seen_weight: float = math.exp(-1.5)
 
 
-@functools.cache
-def _lattice(ku: int, kv: int) -> tuple[np.ndarray, np.ndarray]:
-    """Offsets (fractions of a pixel step, in (-0.5, 0.5)) of a ku×kv lattice inside a pixel footprint, 1×K×1."""
-    a = (np.arange(ku, dtype=np.float32) + 0.5) / ku - 0.5
-    b = (np.arange(kv, dtype=np.float32) + 0.5) / kv - 0.5
-    aa, bb = np.meshgrid(a, b, indexing="xy")
-    return aa.reshape(1, -1, 1), bb.reshape(1, -1, 1)
-
-
 def recentre(north0_m: float, east0_m: float, north_m: float, east_m: float, size: int,
              cell_m: float) -> tuple[tuple[float, float], tuple[int, int]]:
     """The NED origin (north, east) of a ``size``-cell square grid that puts (north, east) near its centre, on
@@ -71,54 +54,6 @@ def recentre(north0_m: float, east0_m: float, north_m: float, east_m: float, siz
     n0 = math.floor((north_m - half) / cell_m) * cell_m
     e0 = math.floor((east_m - half) / cell_m) * cell_m
     return (n0, e0), (int(round((n0 - north0_m) / cell_m)), int(round((e0 - east0_m) / cell_m)))
-
-
-def splat_samples(points: np.ndarray, step_u: np.ndarray, step_v: np.ndarray, spacing_m: float,
-                  max_footprint_m: float, max_per_axis: int) -> tuple[np.ndarray, np.ndarray]:
-    """Spread each pixel over its footprint: returns (sample points 3×N, pixel index N).
-
-    ``points``, ``step_u``, ``step_v``: 3×P (planar layout: x, y, z rows; gravity-aligned, z down) pixel
-    points and one-pixel steps to the next column / row. A pixel covers p ± step_u/2 ± step_v/2; it gets
-    ku×kv samples on a regular lattice inside that parallelogram, ku = ceil(|step_u horizontal| / spacing)
-    (capped). Pixels are grouped by (ku, kv) so each group is one broadcast with the long axis innermost
-    (a trailing axis of 3 would make numpy loop per point, ~50× slower).
-    """
-    len_u = np.hypot(step_u[0], step_u[1])
-    len_v = np.hypot(step_v[0], step_v[1])
-    # A footprint this large means the "step" jumps across a discontinuity: keep the bare point.
-    joined = (len_u <= max_footprint_m) & (len_v <= max_footprint_m)
-    inv = np.float32(1.0 / spacing_m)
-    ku = np.where(joined, np.clip(np.ceil(len_u * inv), 1, max_per_axis), 1).astype(np.uint8)
-    kv = np.where(joined, np.clip(np.ceil(len_v * inv), 1, max_per_axis), 1).astype(np.uint8)
-    # uint8 keys: numpy's stable argsort is a radix sort for them (several times faster than on int32).
-    key = ku * np.uint8(max_per_axis + 1) + kv if max_per_axis < 15 else ku.astype(np.int32) * (max_per_axis + 1) + kv
-    order = np.argsort(key, kind="stable")
-    groups = np.bincount(key, minlength=(max_per_axis + 1) ** 2)
-    # np.take, not fancy indexing: several times faster for column gathers of a 2-D array.
-    p, su, sv = (np.take(x, order, axis=1) for x in (points, step_u, step_v))
-    keys = np.flatnonzero(groups)
-    sizes = groups[keys]
-    lattice = (keys // (max_per_axis + 1)) * (keys % (max_per_axis + 1))
-    total = int(np.dot(sizes, lattice))
-    out = np.empty((3, total), dtype=np.float32)
-    out_pix = np.empty(total, dtype=np.int32)
-    order = order.astype(np.int32)
-    pos, s = 0, 0
-    for k, size in zip(keys.tolist(), sizes.tolist()):
-        e = s + size
-        a, b = _lattice(k // (max_per_axis + 1), k % (max_per_axis + 1))
-        n_lat = a.shape[1]
-        n = n_lat * size
-        if n_lat == 1:                                    # footprint within one sample: the point itself
-            out[:, pos:pos + n] = p[:, s:e]
-        else:
-            view = out[:, pos:pos + n].reshape(3, n_lat, size)                  # 3 × K × group, no copy
-            np.multiply(a, su[:, None, s:e], out=view)
-            view += b * sv[:, None, s:e]
-            view += p[:, None, s:e]
-        out_pix[pos:pos + n].reshape(n_lat, size)[:] = order[s:e]
-        pos, s = pos + n, e
-    return out, out_pix
 
 
 class TopDownGrid:
@@ -205,53 +140,63 @@ class TopDownGrid:
         new[:, r0:r1, c1:] = 0.0
         self._acc, self._factor, self._fresh = new, 1.0, True
 
-    def add(self, north_m: np.ndarray, east_m: np.ndarray, down_m: np.ndarray, horizontal: np.ndarray,
-            flat: np.ndarray, offset_ned_m: Sequence[float] = (0.0, 0.0, 0.0)) -> int:
-        """Bin one frame's samples (positions + ``offset_ned_m``, heights, votes in [0, 1]) for :meth:`evaluate`.
+    def cell_frame(self, offset_ned_m: Sequence[float] = (0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.float32]:
+        """(shift, scale) that take a point relative to ``offset_ned_m`` into this grid's cell units.
 
-        Returns how many fell inside the grid. The offset (the vehicle's position in NED mode) is folded into
-        float32 scalars so that the per-sample arithmetic stays float32. Binning covers only the bounding box
-        of the samples (plus a one-cell ring for hole filling), not the whole grid; samples outside the grid
-        go to one extra bin that is dropped, which is cheaper than masking five arrays.
+        row = (north + shift[0]) · scale, column = (east + shift[1]) · scale (floats: the cell is their floor),
+        height = down + shift[2] (metres from ``ref_down_m``). float32, like the per-sample arithmetic.
+        """
+        shift = np.array([offset_ned_m[0] - self.north0_m, offset_ned_m[1] - self.east0_m,
+                          offset_ned_m[2] - self.ref_down_m], dtype=np.float32)
+        return shift, np.float32(1.0 / self.cell_m)
+
+    def add_cells(self, samples: np.ndarray) -> int:
+        """Bin one frame's samples for :meth:`evaluate`: rows (row, column, height, horizontal, flat) × N.
+
+        Row and column are in cell units (:meth:`cell_frame`), height in metres from ``ref_down_m``, the votes
+        in [0, 1]. Rows 0-1 are overwritten. Returns how many fell inside the grid. Binning covers only the
+        bounding box of the samples (plus a one-cell ring for hole filling), not the whole grid; samples
+        outside the grid go to one extra bin that is dropped, which is cheaper than masking five arrays.
         """
         s = self.size
         self._frame = None
-        if north_m.shape[0] == 0:
+        if samples.shape[1] == 0:
             return 0
-        scale = np.float32(1.0 / self.cell_m)
-        r = _cell_index(north_m, np.float32(offset_ned_m[0] - self.north0_m), scale)
-        c = _cell_index(east_m, np.float32(offset_ned_m[1] - self.east0_m), scale)
-        r_lo, r_hi, c_lo, c_hi = int(r.min()), int(r.max()), int(c.min()), int(c.max())
+        rc = samples[:2]
+        np.floor(rc, out=rc)
+        r_lo, r_hi = _min_max(rc[0])
+        c_lo, c_hi = _min_max(rc[1])
         r0, r1 = max(r_lo - 1, 0), min(r_hi + 2, s)
         c0, c1 = max(c_lo - 1, 0), min(c_hi + 2, s)
         if r0 >= r1 or c0 >= c1:
             return 0
         rows, cols = r1 - r0, c1 - c0
         n_cells = rows * cols
-        r -= r0
-        c -= c0
-        # Negative values wrap to huge unsigned ones: one comparison per axis tests both ends. An axis whose
-        # samples all fell inside the grid needs no test.
+        # Samples off the grid go to the extra bin n_cells. Only an axis that reaches past the grid needs the test.
         outside = None
         if r_lo < 0 or r_hi >= s:
-            outside = r.view(np.uintp) >= rows
+            outside = (rc[0] < r0) | (rc[0] >= r1)
         if c_lo < 0 or c_hi >= s:
-            outside = c.view(np.uintp) >= cols if outside is None else outside | (c.view(np.uintp) >= cols)
-        idx = r                                             # intp: np.bincount would convert anything else first
-        idx *= cols
-        idx += c
+            off_cols = (rc[1] < c0) | (rc[1] >= c1)
+            outside = off_cols if outside is None else outside | off_cols
+        # The crop's flat index, in float32 (whole numbers below 2^24: exact), then one conversion.
+        flat_f = rc[0]
+        flat_f *= np.float32(cols)
+        flat_f += rc[1]
+        flat_f -= np.float32(r0 * cols + c0)
         if outside is not None:
-            idx[outside] = n_cells
-        h = (down_m + np.float32(offset_ned_m[2] - self.ref_down_m)).astype(np.float64)
+            flat_f[outside] = n_cells
+        idx = flat_f.astype(np.intp)                        # intp: np.bincount would convert anything else first
+        h = samples[2].astype(np.float64)
         if self._buf.shape[1] < n_cells + 1:                 # reused across frames: no fresh pages to fault in
             self._buf = np.empty((_N_SUMS, n_cells + 1), dtype=np.float64)
         crop = self._buf[:, :n_cells + 1]
         crop[0] = np.bincount(idx, minlength=n_cells + 1)
         crop[1] = np.bincount(idx, weights=h, minlength=n_cells + 1)
-        crop[2] = np.bincount(idx, weights=h * h, minlength=n_cells + 1)
-        # float64 weights (no copy when the caller gathered them as float64 already).
-        crop[3] = np.bincount(idx, weights=np.asarray(horizontal, dtype=np.float64), minlength=n_cells + 1)
-        crop[4] = np.bincount(idx, weights=np.asarray(flat, dtype=np.float64), minlength=n_cells + 1)
+        np.multiply(h, h, out=h)
+        crop[2] = np.bincount(idx, weights=h, minlength=n_cells + 1)
+        crop[3] = np.bincount(idx, weights=samples[3], minlength=n_cells + 1)
+        crop[4] = np.bincount(idx, weights=samples[4], minlength=n_cells + 1)
         inside = int(idx.shape[0] - crop[0, n_cells])
         self._frame = (r0, c0, crop[:, :n_cells].reshape(_N_SUMS, rows, cols))
         return inside
@@ -310,12 +255,10 @@ class TopDownGrid:
                         clearance, self.votes, self.seen, rules.min_seen_weight)
 
 
-def _cell_index(x: np.ndarray, offset: np.float32, scale: np.float32) -> np.ndarray:
-    """floor((x + offset) · scale) in float32, as intp cell indices (the arithmetic in place, one temporary)."""
-    t = x + offset
-    t *= scale
-    np.floor(t, out=t)
-    return t.astype(np.intp)
+def _min_max(x: np.ndarray) -> tuple[int, int]:
+    """(min, max) of a float32 row of whole numbers, in one pass."""
+    lo, hi, _, _ = cv2.minMaxLoc(x)
+    return int(lo), int(hi)
 
 
 def judge_cells(sums: np.ndarray, rules: CellRules) -> np.ndarray:
