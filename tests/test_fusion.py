@@ -273,6 +273,8 @@ def test_config_is_checked_where_it_enters():
         FusionConfig(cell_m=0.0)
     with pytest.raises(InputError, match="grid_radius_m"):
         FusionConfig(grid_radius_m=3.0)
+    with pytest.raises(InputError, match="cells across"):
+        FusionConfig(grid_radius_m=2000.0, cell_m=0.25)       # 16000 cells across
 
 
 # --- Ground truth: every target is on GT-horizontal ground with the promised clearance -------------------

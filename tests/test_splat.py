@@ -17,17 +17,15 @@ def test_footprint_keys_count_samples_per_axis_and_leave_discontinuities_bare():
 
 
 def test_splat_fills_each_footprint_on_a_lattice_and_carries_values():
-    step_u = np.array([[0.0, 2.0], [2.0, 0.0]], np.float32)      # pixel 0: 1×1; pixel 1: one-pixel step 1 m north
-    step_v = np.array([[0.0, 0.0], [0.0, 2.0]], np.float32)      # ... and 1 m east
-    keys = footprint_keys(step_u * 0.1, step_v * 0.1, 0.5, 4.0, 4)     # pixel 0 small ...
-    keys[1] = footprint_keys(step_u[:, 1:], step_v[:, 1:], 0.5, 4.0, 4)[0]    # pixel 1: 2×2
-    order = np.argsort(keys, kind="stable")
+    # Two-pixel steps (north, east rows): pixel 0 covers 0.1 m (1×1), pixel 1 covers 1 m × 1 m (2×2).
+    step_u = np.array([[0.0, 2.0], [0.2, 0.0]], np.float32)
+    step_v = np.array([[0.2, 0.0], [0.0, 2.0]], np.float32)
     points = np.array([[10.0, 20.0], [5.0, 7.0]], np.float32)
-    votes = np.array([0.25, 1.0], np.float32)
-    columns = np.zeros((3, 3, 2), np.float32)
-    for r in range(2):
-        columns[r] = np.stack([step_u[r] * np.array([0.1, 1.0]), step_v[r] * np.array([0.1, 1.0]), points[r]])
-    columns[2, 2] = votes
+    keys = footprint_keys(step_u, step_v, 0.5, 4.0, 4)
+    columns = np.zeros((3, 3, 2), np.float32)             # quantities north, east, vote; per pixel (u, v, value)
+    columns[:2, 0], columns[:2, 1], columns[:2, 2] = step_u, step_v, points
+    columns[2, 2] = (0.25, 1.0)
+    order = np.argsort(keys, kind="stable")
     samples = splat(columns[:, :, order], keys[order], 4)
     assert samples.shape == (3, 1 + 4)
     # The 1×1 pixel is its own point; the 2×2 one gets the centres of its four quarters (±0.25 m).

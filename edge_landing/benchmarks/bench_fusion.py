@@ -24,7 +24,7 @@ from typing import Sequence
 
 import numpy as np
 
-from edge_landing.cli.common import CliParser, check_number, check_seed, run_cli
+from edge_landing.cli.common import CliParser, check_number, check_seed, check_threads, run_cli
 from edge_landing.runtime.core.camera import (
     Attitude,
     Intrinsics,
@@ -35,6 +35,7 @@ from edge_landing.runtime.core.cpu_features import cpu_features
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Prediction, VehicleState
 from edge_landing.runtime.fusion.fuser import FusionConfig, LandingFuser
+from edge_landing.runtime.pipeline.threads import SideThreads, limit_side_threads
 
 
 @dataclass(frozen=True)
@@ -132,11 +133,9 @@ def _main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--working", type=int, nargs=2, default=d.working_hw, metavar=("H", "W"))
     ap.add_argument("--mode", default=d.mode, choices=("ned", "vehicle"))
     ap.add_argument("--seed", type=int, default=d.seed)
-    ap.add_argument("--opencv-threads", type=int, default=1,
-                    help="OpenCV threads (edge-run uses 1; 0 leaves OpenCV's default)")
+    ap.add_argument("--opencv-threads", type=int, default=1, help="OpenCV threads (edge-run uses 1)")
     a = ap.parse_args(argv)
-    if a.opencv_threads < 0:
-        raise InputError(f"--opencv-threads must be >= 0, got {a.opencv_threads}")
+    check_threads("--opencv-threads", a.opencv_threads)
     check_number("--altitude", a.altitude, 0.0, 1000.0, lo_open=True, unit="metres")
     check_seed("--seed", a.seed)
     for flag, (h, w) in (("--input", a.input), ("--working", a.working)):
@@ -144,10 +143,9 @@ def _main(argv: Sequence[str] | None = None) -> int:
             raise InputError(f"{flag} must be two sizes between 16 and 4096 pixels (H W), got {h} {w}")
     cfg = BenchConfig(frames=a.frames, warmup=a.warmup, altitude_m=a.altitude, input_hw=tuple(a.input),
                       working_hw=tuple(a.working), mode=a.mode, seed=a.seed)
-    from edge_landing.runtime.pipeline.threads import SideThreads, limit_side_threads
     limit_side_threads(SideThreads(opencv=a.opencv_threads, blas=1))     # as edge-run sets them
     result = run(cfg)
-    result.update(opencv_threads=a.opencv_threads or None, cpu=cpu_features().summary())
+    result.update(opencv_threads=a.opencv_threads, cpu=cpu_features().summary())
     print(json.dumps(result))
     return 0
 

@@ -9,6 +9,8 @@ from edge_landing.runtime.fusion.deferred import StageTiming
 from edge_landing.runtime.fusion.motion import MotionConfig
 from edge_landing.runtime.fusion.mount_check import MountCheckConfig
 
+_MAX_GRID_CELLS = 4096                 # cells across the fusion grid
+
 
 @dataclass(frozen=True)
 class FusionConfig:
@@ -75,6 +77,11 @@ class FusionConfig:
         if self.grid_radius_m < 2 * self.required_clearance_m:
             raise InputError(f"fusion grid_radius_m={self.grid_radius_m} is too small for a clearance of "
                              f"{self.required_clearance_m} m (expected at least twice that)")
+        cells = math.ceil(2.0 * self.grid_radius_m / self.cell_m)
+        if cells > _MAX_GRID_CELLS:
+            # (fusion.grid indexes a frame's cells in float32: exact below 2^24 = 4096² cells)
+            raise InputError(f"fusion grid_radius_m={self.grid_radius_m} with cell_m={self.cell_m} gives {cells} cells "
+                             f"across; at most {_MAX_GRID_CELLS}")
         if self.vehicle_radius_m < 0 or self.margin_m < 0 or self.travel_penalty_per_m < 0 or self.hysteresis_m < 0:
             raise InputError("fusion vehicle_radius_m, margin_m, travel_penalty_per_m and hysteresis_m must be >= 0")
         if self.depth_smoothing_px < 1 or self.depth_smoothing_px % 2 == 0:

@@ -318,7 +318,7 @@ class LandingFuser:
         tests/test_fusion.py checks that it agrees with geometry.hvo_from_normals.
         """
         cfg = self.config
-        # Planar layout (3×H×W): level point = depth · (R @ ray), ray = (u, v, 1) separable in u and v.
+        # Planar layout (3×H×W): level point = depth · (R @ ray), the ray table undistorted (Intrinsics.pixel_rays).
         h, w = depth.shape
         pts = np.matmul(r_nc, self._rays_planar).reshape(3, h, w)     # level ray directions (one small product)
         pts *= depth[None]                                             # x north, y east, z down

@@ -41,6 +41,7 @@ def lattice(ku: int, kv: int) -> np.ndarray:
     out = np.ones((ku * kv, 3), dtype=np.float32)
     out[:, 0] = aa.ravel()
     out[:, 1] = bb.ravel()
+    out.setflags(write=False)                              # cached: shared by every call
     return out
 
 
