@@ -17,6 +17,7 @@ from edge_landing.benchmarks import (
     check_shipped,
     closed_loop,
     frame_cost,
+    fusion_ab,
     honest_report,
     landing_truth,
     lying_model,
@@ -147,6 +148,17 @@ def test_closed_loop_output_folder(capsys, files, out, expected):
 ])
 def test_bench_fusion(capsys, argv, expected):
     one_line_error(capsys, bench_fusion.main, argv, expected)
+
+
+# --- fusion_ab ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv,expected", [
+    ([], "--base"), (["--base", "{t}/missing"], "--base"), (["--base", "{t}/adir"], "--base"),
+    (["--base", "{t}/adir", "--opencv-threads", "0"], "--opencv-threads"), (["--base", ".", "--frames", "5"], "--frames"),
+    (["--base", ".", "--mode", "bogus"], "--mode"),
+])
+def test_fusion_ab(capsys, files, argv, expected):
+    one_line_error(capsys, fusion_ab.main, [a.format(t=files) for a in argv], expected)
 
 
 # --- bench_motion --------------------------------------------------------------------------------------------

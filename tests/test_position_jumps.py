@@ -142,7 +142,7 @@ def test_a_committed_spot_is_dropped_when_the_frame_moves():
     moved = VehicleState(4.0, position_ned_m=np.array([60.0, 0.0, -30.0]), agl_m=30.0, position_epoch=1)
     out, said = cont.step(Target.none(4, 4.0, "no safe spot"), moved, None, True)
     assert not out.valid and cont.spot is None
-    assert said == "spot dropped: position or heading jumped" and len(said) <= 50   # STATUSTEXT's limit
+    assert said == "spot dropped: position or heading jumped" and len(said) <= 50   # one STATUSTEXT message
     out, said = cont.step(Target.none(5, 5.0, "no safe spot"), moved, None, True)
     assert not out.valid and said == ""
 

@@ -73,27 +73,32 @@ def render_boxes(intr: Intrinsics, mount: Mount, attitude: Attitude, position_ne
     return depth, probs
 
 
-def run(cfg: BenchConfig) -> dict:
-    if cfg.mode not in ("ned", "vehicle"):
-        raise InputError(f"--mode must be 'ned' or 'vehicle', got '{cfg.mode}'")
-    if cfg.frames < 10 or cfg.warmup < 0:
-        raise InputError(f"--frames must be >= 10 and --warmup >= 0, got {cfg.frames} and {cfg.warmup}")
+def scene(cfg: BenchConfig, n_poses: int = 8) -> tuple[Intrinsics, Mount, list, list]:
+    """The camera, and ``n_poses`` pre-rendered frames ((depth, HVO) and (attitude, NED position)) over the box
+    field, so that a timing loop times fusion alone."""
     rng = np.random.default_rng(cfg.seed)
     intr = Intrinsics.from_hfov(cfg.input_hw[1], cfg.input_hw[0])
     mount = Mount()
     centres = rng.uniform([-10, -60, 0], [150, 60, 0], size=(60, 3))
     sizes = rng.uniform([4, 4, 3], [15, 15, 25], size=(60, 3))
     boxes = np.stack([centres - sizes * [0.5, 0.5, 0] - [0, 0, 1] * sizes, centres + sizes * [0.5, 0.5, 0]], axis=1)
-    fuser = LandingFuser(FusionConfig(working_hw=tuple(cfg.working_hw)), intr, mount)
-    # Pre-render a few poses so the loop times fusion alone.
-    n_poses = 8
     preds, states = [], []
     for i in range(n_poses):
         pos = np.array([i * cfg.speed_mps / cfg.fps, 0.0, -cfg.altitude_m])
         att = Attitude(0.02 * math.sin(i), 0.03 * math.cos(i), 0.1 * i)
-        depth, probs = render_boxes(intr, mount, att, pos, boxes)
-        preds.append((depth, probs))
+        preds.append(render_boxes(intr, mount, att, pos, boxes))
         states.append((att, pos))
+    return intr, mount, preds, states
+
+
+def run(cfg: BenchConfig) -> dict:
+    if cfg.mode not in ("ned", "vehicle"):
+        raise InputError(f"--mode must be 'ned' or 'vehicle', got '{cfg.mode}'")
+    if cfg.frames < 10 or cfg.warmup < 0:
+        raise InputError(f"--frames must be >= 10 and --warmup >= 0, got {cfg.frames} and {cfg.warmup}")
+    intr, mount, preds, states = scene(cfg)
+    fuser = LandingFuser(FusionConfig(working_hw=tuple(cfg.working_hw)), intr, mount)
+    n_poses = len(preds)
     latencies, cpu_times, valid = [], [], 0
     for i in range(cfg.warmup + cfg.frames):
         t_s = i / cfg.fps

@@ -39,7 +39,7 @@ def fill_sampling_holes(sums: np.ndarray, min_count: float, min_neighbours: int,
     near = (holes[None, :] + offsets[:, None]).ravel()
     gathered = np.empty((sums.shape[0], near.size), dtype=flat.dtype)
     for k in range(sums.shape[0]):
-        np.take(flat[k], near, out=gathered[k])
+        np.take(flat[k], near, out=gathered[k], mode="wrap")   # in range (no border holes); "raise" buffers out
     gathered = gathered.reshape(sums.shape[0], 8, holes.size)
     pooled = gathered[:, 0].copy()
     for j in range(1, 8):

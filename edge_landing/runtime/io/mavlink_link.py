@@ -39,6 +39,7 @@ from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: 
 )
 from edge_landing.runtime.io.send_rate import SendRate
 from edge_landing.runtime.io.setup_reader import SetupReader
+from edge_landing.runtime.io.status_text import chunk_status, next_status_id
 from edge_landing.runtime.io.stream_requests import StreamRequests
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.io.telemetry_feed import (  # noqa: F401  (TELEMETRY_MESSAGES re-exported)
@@ -70,6 +71,8 @@ class MavlinkLink:
         self._mavutil: Any = None
         self._key: Optional[bytes] = None
         self._lock = threading.Lock()
+        self._status_lock = threading.Lock()                 # one STATUSTEXT's chunks at a time (not _lock: _send takes it)
+        self._status_id = 0                                  # the last chunked STATUSTEXT's id
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._last_error_s = -math.inf
@@ -218,14 +221,24 @@ class MavlinkLink:
         return stamp_us
 
     def send_status(self, text: str, severity: int = 6) -> bool:
-        """STATUSTEXT (severity 6 = INFO), at most 50 characters (put the number first: it is cut there)."""
+        """STATUSTEXT (severity 6 = INFO). Longer than 50 characters, it goes as MAVLink 2 chunks of one ``id``, up
+        to 199 characters (io.status_text); a receiver that does not join chunks shows the first 50 first, so put
+        the number first. True when every chunk was sent; stops at the first that was not."""
         if self._mavutil is None:
             return False
-        msg = self._mavutil.mavlink.MAVLink_statustext_message(severity, text[:50].encode("ascii", "replace"))
-        ok = self._send(msg)
-        if ok:
-            self.counts.add("statustext")
-        return ok
+        chunks = chunk_status(text)
+        make = self._mavutil.mavlink.MAVLink_statustext_message
+        # One text at a time (the fusion thread, the main loop and the link thread all send them): a ground station
+        # joins one chunked text per sender and gives it up when a message with another id comes between.
+        with self._status_lock:
+            text_id = 0
+            if len(chunks) > 1:
+                self._status_id = text_id = next_status_id(self._status_id)
+            for seq, part in chunks:
+                if not self._send(make(severity, part, text_id, seq)):
+                    return False
+        self.counts.add("statustext")
+        return True
 
     def _backlog(self) -> int:
         """Bytes queued for the peer: a TCP socket's send queue, or a serial port's output queue (a radio slower

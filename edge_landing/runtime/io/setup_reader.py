@@ -63,5 +63,5 @@ class SetupReader:
         # must not end the link's thread.
         shorts = [p.short for p in self.setup.problems() if p.rule.misplaces]
         if held and held != self._held_said and shorts:
-            self._status(f"{shorts[0]}: edge targets held", 4)   # STATUSTEXT keeps 50 characters
+            self._status(f"{shorts[0]}: edge targets held", 4)   # one STATUSTEXT message (50 characters)
         self._held_said = held

@@ -237,7 +237,7 @@ class Pipeline:
         if self.link is not None:
             self._announce_telemetry(match)
             if said:
-                self.link.send_status(said[:50], severity=4)
+                self.link.send_status(said, severity=4)
             with self._send_lock:
                 target = self._recheck(target, frame.clock_lag_s)
                 target, pose_time_s = self._at_newest_pose(target, match.state)
@@ -331,7 +331,8 @@ class Pipeline:
         return aimed(target, aim), newest.time_s
 
     def _announce_telemetry(self, match: TelemetryMatch) -> None:
-        """STATUSTEXT and a log line when telemetry is lost or found (number first: the text is cut at 50)."""
+        """STATUSTEXT and a log line when telemetry is lost or found (number first: a ground station that does not
+        join STATUSTEXT chunks shows the first 50 characters on their own)."""
         if self.telemetry is None or self.link is None or match.fresh == self._telemetry_fresh:
             return
         now = time.monotonic()
@@ -342,7 +343,7 @@ class Pipeline:
         elif not match.fresh and self._telemetry_fresh:
             self._telemetry_lost_s = now
             log.warning("telemetry lost (%s): no targets are sent until it is back", match.reason)
-            self.link.send_status(f"{self.summary.frames} frames: telemetry lost, no target", severity=4)
+            self.link.send_status(f"{self.summary.frames} frames: telemetry lost, no target ({match.reason})", severity=4)
         self._telemetry_fresh = match.fresh
 
     def _statustext(self, target: Target) -> None:
@@ -357,7 +358,7 @@ class Pipeline:
         if target.valid:
             self.link.send_status(f"{target.clearance_m:.1f}m clear: edge target found")
         elif self._had_target is not None:
-            self.link.send_status(f"edge target lost: {target.reason}"[:50], severity=5)
+            self.link.send_status(f"edge target lost: {target.reason}", severity=5)
         self._had_target = target.valid
 
     def _status(self, fps: float) -> None:

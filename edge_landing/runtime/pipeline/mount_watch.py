@@ -52,7 +52,7 @@ class MountWatch:
                     est.describe(), 100.0 * math.radians(est.turn_deg), flags, SUGGEST_SIGMA_DEG)
         if self._status is not None and not self._status_sent:
             self._status_sent = True
-            self._status(f"{est.turn_deg:.1f}deg camera turn: check edge mount", 4)   # 50 characters at most
+            self._status(f"{est.turn_deg:.1f}deg camera turn: check edge mount", 4)   # one STATUSTEXT message (50 characters)
 
     def line(self) -> str:
         """For the run's summary ("" when the check never had enough frame pairs)."""
