@@ -1,4 +1,9 @@
-"""Time-sorted samples of one telemetry quantity, bounded in time and in count (``telemetry.py`` keeps four)."""
+"""Time-sorted samples of one telemetry quantity, bounded in time and in count (``telemetry.py`` keeps four).
+
+A sample may carry its quantity's own rate of change (an attitude's Euler rates from the gyros, a position's
+velocity). A capture time with samples on both sides is interpolated; one with a sample on one side only (the
+usual case right after capture: the next sample is still on its way) takes the nearest sample moved along its
+own rate for at most ``max_extrapolation_s``, or the nearest sample as it is when it carries no rate."""
 from __future__ import annotations
 
 import bisect
@@ -14,29 +19,35 @@ __all__ = ["TimeSeries"]
 class TimeSeries:
     """Time-sorted samples of one quantity (times on the local monotonic clock)."""
 
-    def __init__(self, history_s: float, max_samples: int):
+    def __init__(self, history_s: float, max_samples: int, max_extrapolation_s: float = 0.0):
         self.history_s = history_s
+        self.max_extrapolation_s = max_extrapolation_s
         # Bounded by count as well as by time: a flood of samples within history_s cannot grow memory without end.
         self.times: Deque[float] = deque(maxlen=max_samples)
         self.values: Deque[np.ndarray] = deque(maxlen=max_samples)
+        self.rates: Deque[Optional[np.ndarray]] = deque(maxlen=max_samples)   # per unit time; None: not known
         self.last_arrival_s = -math.inf
 
-    def add(self, t_s: float, value: np.ndarray, arrival_s: float) -> bool:
+    def add(self, t_s: float, value: np.ndarray, arrival_s: float, rate: Optional[np.ndarray] = None) -> bool:
         """False (not kept) for a sample no later than the newest: out of order, duplicated, or a frozen clock
-        (new values under an old time would be matched to frames as if measured then)."""
+        (new values under an old time would be matched to frames as if measured then). ``rate``: the value's
+        own rate of change at the sample (None when not known or not trusted)."""
         if self.times and t_s <= self.times[-1]:
             return False
         self.times.append(t_s)
         self.values.append(value)
+        self.rates.append(rate)
         self.last_arrival_s = max(self.last_arrival_s, arrival_s)
         while self.times and self.times[0] < t_s - self.history_s:
             self.times.popleft()
             self.values.popleft()
+            self.rates.popleft()
         return True
 
     def clear(self) -> None:
         self.times.clear()
         self.values.clear()
+        self.rates.clear()
 
     def at(self, t_s: float, window_s: float, angles: bool = False) -> Optional[np.ndarray]:
         if not self.times:
@@ -55,4 +66,12 @@ class TimeSeries:
             out: np.ndarray = v0 + w * delta
             return out
         best = min((j for j in (before, after) if j is not None), key=lambda j: abs(times[j] - t_s))
-        return self.values[best] if abs(times[best] - t_s) <= window_s else None
+        dt = t_s - times[best]
+        if abs(dt) > window_s:
+            return None
+        rate = self.rates[best]
+        if rate is None or self.max_extrapolation_s <= 0:
+            return self.values[best]
+        reach = min(max(dt, -self.max_extrapolation_s), self.max_extrapolation_s)
+        moved: np.ndarray = self.values[best] + rate * reach
+        return moved

@@ -28,7 +28,9 @@ The link thread calls ``add_*`` as messages arrive; the pipeline asks ``lookup(c
 - A gimbal (``gimbal.py``), when given, must report the camera's orientation at the capture time: else no match.
 
 Attitude and position are interpolated between the two samples around the capture time, or taken from the
-nearest one within ``window_s``; anything older is ignored rather than guessed.
+nearest one within ``window_s``, carried along its own rate (the gyro rates, the velocity) for at most
+``max_extrapolation_s`` while that rate agrees with how the series moved; anything older is ignored rather
+than guessed.
 """
 from __future__ import annotations
 
@@ -67,12 +69,13 @@ class TelemetryBuffer:
     def __init__(self, config: TelemetryConfig = TelemetryConfig(), gimbal: Optional[GimbalSeries] = None):
         self.config, self.gimbal = config, gimbal
         self._lock = threading.Lock()
-        self._attitude = TimeSeries(config.history_s, config.max_samples)
-        self._position = TimeSeries(config.history_s, config.max_samples)
+        self._attitude = TimeSeries(config.history_s, config.max_samples, config.max_extrapolation_s)
+        self._position = TimeSeries(config.history_s, config.max_samples, config.max_extrapolation_s)
         self._range = TimeSeries(config.history_s, config.max_samples)
         self._rel_alt = TimeSeries(config.history_s, config.max_samples)
         self._clock = ClockOffset(config)
         self._rejected: Counter[str] = Counter()
+        self._rates_refused: Counter[str] = Counter()          # samples whose rate matching does not use
         self.samples = 0
         self._position_epoch = 0
         self._reboots = 0
@@ -109,9 +112,11 @@ class TelemetryBuffer:
             return self.local_time(remote_ms, arrival_s) if _finite(remote_ms) and remote_ms > 0 else None
 
     def _add(self, series: TimeSeries, value: np.ndarray, remote_ms: Optional[float], arrival_s: Optional[float],
-             sample_s: Optional[float] = None, velocity: Optional[np.ndarray] = None) -> bool:
+             sample_s: Optional[float] = None, velocity: Optional[np.ndarray] = None,
+             rate: Optional[np.ndarray] = None) -> bool:
         """``sample_s``: the sample's local time when the caller knows it (else mapped from ``remote_ms``);
-        ``velocity``: a position sample's own NED velocity (m/s), when it carries one."""
+        ``velocity``: a position sample's own NED velocity (m/s), when it carries one; ``rate``: the value's rate
+        of change, kept for matching only while it agrees with the series (:meth:`_checked_rate`)."""
         arrival = time.monotonic() if arrival_s is None else arrival_s
         with self._lock:
             if sample_s is None and remote_ms is not None and not (_finite(remote_ms) and remote_ms > 0):
@@ -129,13 +134,49 @@ class TelemetryBuffer:
                     old.clear()
                 self._position_epoch += 1
                 self._rejected[why] += 1
-            if not series.add(t, value, arrival):
+            rate = self._checked_rate(series, t, value, rate)
+            if not series.add(t, value, arrival, rate):
                 self._rejected["sample not newer than the last one (out of order, repeated or a frozen clock)"] += 1
                 return False
             if series is self._position:
                 self._velocity.kept(t, velocity, remote_s)
             self.samples += 1
             return True
+
+    def _checked_rate(self, series: TimeSeries, t_s: float, value: np.ndarray, rate: Optional[np.ndarray]
+                      ) -> Optional[np.ndarray]:
+        """``rate`` when it agrees with how the value changed since the newest sample (mean of both samples' rates
+        against the difference quotient, within the tolerances of TelemetryConfig), else None. No sample before
+        (or one more than twice the matching window before, or a position velocity the reset check distrusts):
+        None, the sample is held as it is."""
+        c = self.config
+        if rate is None or not series.times or not 0 < t_s - series.times[-1] <= 2 * c.window_s:
+            return None
+        angles = series is self._attitude
+        if not angles and not self._velocity.trusted:
+            return None
+        dt = t_s - series.times[-1]
+        delta = value - series.values[-1]
+        if angles:
+            delta = (delta + math.pi) % (2 * math.pi) - math.pi
+        seen = delta / dt
+        last = series.rates[-1]
+        said = rate if last is None else 0.5 * (rate + last)
+        tolerance = c.rate_tolerance_rad_s if angles else c.rate_tolerance_mps
+        allowed = tolerance + c.rate_tolerance_share * np.maximum(np.abs(seen), np.abs(said))
+        if bool(np.all(np.abs(seen - said) <= allowed)):
+            return rate
+        name = "attitude rates" if angles else "position velocities"
+        if name not in self._rates_refused:
+            log.info("the autopilot's %s disagree with how its %s change: telemetry is held, not carried, to a "
+                     "capture time past the newest sample", name, "angles" if angles else "positions")
+        self._rates_refused[name] += 1
+        return None
+
+    def rates_refused(self) -> Dict[str, int]:
+        """Samples whose rate was not used for matching (it disagreed with the series), by kind."""
+        with self._lock:
+            return dict(self._rates_refused)
 
     def _frame_moved(self, series: TimeSeries, t_s: float, value: np.ndarray, velocity: Optional[np.ndarray] = None,
                      remote_s: Optional[float] = None) -> Tuple[Tuple[TimeSeries, ...], str]:
@@ -175,7 +216,10 @@ class TelemetryBuffer:
         return (series,), "heading jumped (a yaw reset): earlier attitudes dropped"
 
     def add_attitude(self, roll_rad: float, pitch_rad: float, yaw_rad: float, remote_ms: Optional[float] = None,
-                     arrival_s: Optional[float] = None, sample_s: Optional[float] = None) -> bool:
+                     arrival_s: Optional[float] = None, sample_s: Optional[float] = None,
+                     body_rates_rad_s: Optional[Tuple[float, float, float]] = None) -> bool:
+        """``body_rates_rad_s``: the gyro rates with the attitude (ATTITUDE's rollspeed, pitchspeed, yawspeed, body
+        frame), used to carry the attitude to a capture time just past the newest sample (io.series)."""
         c = self.config
         if not _finite(roll_rad, pitch_rad, yaw_rad):
             self.reject("attitude not finite")
@@ -186,13 +230,16 @@ class TelemetryBuffer:
         if abs(yaw_rad) > 2 * math.pi + 1e-3:
             self.reject("yaw out of range")
             return False
-        return self._add(self._attitude, np.array([roll_rad, pitch_rad, yaw_rad]), remote_ms, arrival_s, sample_s)
+        rate = _euler_rates(roll_rad, pitch_rad, body_rates_rad_s, c.max_body_rate_rad_s)
+        return self._add(self._attitude, np.array([roll_rad, pitch_rad, yaw_rad]), remote_ms, arrival_s, sample_s,
+                         rate=rate)
 
     def add_position(self, north_m: float, east_m: float, down_m: float, remote_ms: Optional[float] = None,
                      arrival_s: Optional[float] = None, sample_s: Optional[float] = None,
                      velocity_ned_mps: Optional[Tuple[float, float, float]] = None) -> bool:
-        """``velocity_ned_mps``: the autopilot's velocity with the position (LOCAL_POSITION_NED's vx, vy, vz),
-        used only to tell a reset from flight; a non-finite or implausible one is ignored."""
+        """``velocity_ned_mps``: the autopilot's velocity with the position (LOCAL_POSITION_NED's vx, vy, vz), used
+        to tell a reset from flight and to carry the position to a capture time just past the newest sample; a
+        non-finite or implausible one is ignored."""
         if not _finite(north_m, east_m, down_m) or max(abs(north_m), abs(east_m), abs(down_m)) > self.config.max_position_m:
             self.reject("local position not finite or too far")
             return False
@@ -200,7 +247,8 @@ class TelemetryBuffer:
         if velocity_ned_mps is not None and _finite(*velocity_ned_mps):
             v = np.array(velocity_ned_mps, dtype=np.float64)
             velocity = v if float(np.linalg.norm(v)) <= self.config.max_speed_mps else None
-        return self._add(self._position, np.array([north_m, east_m, down_m]), remote_ms, arrival_s, sample_s, velocity)
+        return self._add(self._position, np.array([north_m, east_m, down_m]), remote_ms, arrival_s, sample_s, velocity,
+                         rate=velocity)
 
     def add_relative_alt(self, alt_m: float, remote_ms: Optional[float] = None,
                          arrival_s: Optional[float] = None, sample_s: Optional[float] = None) -> bool:
@@ -372,6 +420,18 @@ class TelemetryBuffer:
             return TelemetryMatch(None, f"no telemetry within {self.config.window_s:g} s of the capture time{late}")
         gimbal_why = "" if self.gimbal is None else self.gimbal.why_not(capture_time_s, now_s)
         return TelemetryMatch(None, gimbal_why) if gimbal_why else TelemetryMatch(state)
+
+
+def _euler_rates(roll_rad: float, pitch_rad: float, body_rates: Optional[Tuple[float, float, float]],
+                 max_rate: float) -> Optional[np.ndarray]:
+    """Euler angle rates (roll, pitch, yaw per second) from body rates p, q, r; None when not given, not finite or
+    beyond ``max_rate`` (pitch is within the tilt envelope here, so cos(pitch) is far from 0)."""
+    if body_rates is None or not _finite(*body_rates) or max(abs(float(v)) for v in body_rates) > max_rate:
+        return None
+    p, q, r = (float(v) for v in body_rates)
+    sr, cr = math.sin(roll_rad), math.cos(roll_rad)
+    cp, tp = math.cos(pitch_rad), math.tan(pitch_rad)
+    return np.array([p + (q * sr + r * cr) * tp, q * cr - r * sr, (q * sr + r * cr) / cp])
 
 
 def _height_above_ground(rng: Optional[np.ndarray], rel: Optional[np.ndarray],

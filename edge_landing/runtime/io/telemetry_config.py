@@ -55,6 +55,17 @@ class TelemetryConfig:
     # reset): everything placed in NED with the old heading is rotated about the vehicle, so a new epoch starts.
     max_yaw_rate_rad_s: float = 2.0 * math.pi
     min_yaw_jump_rad: float = math.radians(15.0)
+    # A capture time with telemetry on one side only (the next sample not yet arrived) takes the nearest sample
+    # moved along its own rate (ATTITUDE's gyro rates, LOCAL_POSITION_NED's velocity) for at most this long,
+    # instead of holding it: 50 ms of a 30 deg/s turn is 1.5 deg, 1.3 m on the ground at 50 m range.
+    max_extrapolation_s: float = 0.1
+    max_body_rate_rad_s: float = 10.0   # gyro rates beyond this are not believed (nor used)
+    # A sample's rate is used only while it agrees with how its value actually changed since the sample before
+    # (within abs + rel x the larger of the two, per component): a unit slip (deg/s sent as rad/s), a frame slip
+    # or a partial implementation sending zeros while the angles move falls back to holding the nearest sample.
+    rate_tolerance_rad_s: float = 0.2
+    rate_tolerance_mps: float = 1.0
+    rate_tolerance_share: float = 0.3
     # The autopilot's own estimator status (EKF_STATUS_REPORT, ESTIMATOR_STATUS) counts for this long after it
     # arrived; without one the estimate is taken as good (autopilots that do not send it).
     estimator_status_s: float = 3.0

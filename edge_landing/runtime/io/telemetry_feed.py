@@ -43,7 +43,8 @@ def feed_telemetry(telemetry: TelemetryBuffer, msg: Any, arrival_s: float, mavli
     if kind not in TELEMETRY_MESSAGES:
         return ""
     if kind == "ATTITUDE":
-        telemetry.add_attitude(msg.roll, msg.pitch, msg.yaw, msg.time_boot_ms, arrival_s)
+        telemetry.add_attitude(msg.roll, msg.pitch, msg.yaw, msg.time_boot_ms, arrival_s,
+                               body_rates_rad_s=(msg.rollspeed, msg.pitchspeed, msg.yawspeed))
     elif kind == "LOCAL_POSITION_NED":
         telemetry.add_position(msg.x, msg.y, msg.z, msg.time_boot_ms, arrival_s, velocity_ned_mps=(msg.vx, msg.vy, msg.vz))
     elif kind == "GLOBAL_POSITION_INT":
