@@ -156,6 +156,18 @@ class AutopilotModel:
         self._send_all(m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, base,
                                                    self.mode, state, 3))
 
+    def _body_rates(self, t_ms: int, a: Attitude) -> tuple[float, float, float]:
+        """Gyro rates (body p, q, r, rad/s) as ArduPilot fills ATTITUDE's rollspeed..yawspeed: here from the change of
+        the model's attitude since the last report (Euler rates turned into body rates)."""
+        last, self._last_attitude = getattr(self, "_last_attitude", None), (t_ms, a)
+        if last is None or t_ms <= last[0]:
+            return 0.0, 0.0, 0.0
+        dt = (t_ms - last[0]) / 1000.0
+        d_roll, d_pitch = (a.roll_rad - last[1].roll_rad) / dt, (a.pitch_rad - last[1].pitch_rad) / dt
+        d_yaw = math.remainder(a.yaw_rad - last[1].yaw_rad, 2.0 * math.pi) / dt
+        sr, cr, sp, cp = math.sin(a.roll_rad), math.cos(a.roll_rad), math.sin(a.pitch_rad), math.cos(a.pitch_rad)
+        return d_roll - d_yaw * sp, d_pitch * cr + d_yaw * sr * cp, -d_pitch * sr + d_yaw * cr * cp
+
     def telemetry(self) -> None:
         m = self.mavutil.mavlink
         t = self._time_boot_ms()
@@ -165,7 +177,7 @@ class AutopilotModel:
         lat0, lon0, alt0 = ORIGIN_LAT_LON_ALT
         lat = lat0 + math.degrees(local[0] / 6378137.0)
         lon = lon0 + math.degrees(local[1] / (6378137.0 * math.cos(math.radians(lat0))))
-        self._send_all(m.MAVLink_attitude_message(t, a.roll_rad, a.pitch_rad, a.yaw_rad, 0.0, 0.0, 0.0))
+        self._send_all(m.MAVLink_attitude_message(t, a.roll_rad, a.pitch_rad, a.yaw_rad, *self._body_rates(t, a)))
         self._send_all(m.MAVLink_local_position_ned_message(t, *(float(v) for v in local), *(float(v) for v in self.vel)))
         self._send_all(m.MAVLink_global_position_int_message(
             t, int(lat * 1e7), int(lon * 1e7), int((alt0 - local[2]) * 1000), int(-local[2] * 1000),

@@ -143,6 +143,7 @@ class Pipeline:
             s.mount_line = self.mount_watch.line()
             if self.telemetry is not None:
                 s.rejected_telemetry = self.telemetry.rejected()
+                s.telemetry_rates_refused, s.telemetry_samples = self.telemetry.rates_refused(), self.telemetry.samples
         return s
 
     def _process(self, frame: Frame) -> None:

@@ -42,6 +42,11 @@ class TelemetrySource(Protocol):
 
     def rejected(self) -> Dict[str, int]: ...
 
+    def rates_refused(self) -> Dict[str, int]: ...
+
+    @property
+    def samples(self) -> int: ...
+
 
 class TargetSink(Protocol):
     """Where targets go (the MAVLink link); ``send_target`` says whether the target really left, and why not."""

@@ -106,6 +106,9 @@ class RunSummary:
     autopilot_setup: Optional[Dict[str, Any]] = None   # the PLND_* parameters read (io.autopilot_setup)
     mount_line: str = ""         # the camera's orientation measured from the images (pipeline.mount_watch)
     rejected_telemetry: Dict[str, int] = field(default_factory=dict)
+    # Samples kept but held, not carried along their rate, at a capture time past them (io.telemetry)
+    telemetry_rates_refused: Dict[str, int] = field(default_factory=dict)
+    telemetry_samples: int = 0
     times: StageTimes = field(default_factory=StageTimes)
     model_name: str = ""
     stopped_by: str = ""
@@ -175,6 +178,9 @@ class RunSummary:
                     f"{self.sent} (+{self.bridged} between frames: --bridge), drops {self.drops}, "
                     f"camera faults {self.camera_faults}, link {self.link}, "
                     f"rejected telemetry {self.rejected_telemetry}, stopped by {self.stopped_by or 'end'}")
+        if self.telemetry_rates_refused:
+            rows.append(f"telemetry rates not used to carry samples to a capture time (they disagreed with the series): "
+                        f"{self.telemetry_rates_refused} of {self.telemetry_samples} samples")
         rows += self.setup_lines()
         if self.mount_line:
             rows.append(self.mount_line)
