@@ -33,8 +33,7 @@ from edge_landing.runtime.core.errors import InputError
 # Runs in each worker, against whichever edge_landing its PYTHONPATH names. Protocol: one line in, one frame
 # fused, one line out ("wall_s cpu_s").
 _WORKER = r"""
-import os, sys, time
-os.environ.setdefault("OMP_NUM_THREADS", "1")
+import sys, time
 import cv2, numpy as np
 cv2.setNumThreads(int(sys.argv[3]))
 from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount

@@ -5,9 +5,18 @@ Pure numpy + OpenCV, no state. Cells: rows north, columns east, ``cell_m`` metre
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import cv2
 import numpy as np
+
+
+def gather(a: np.ndarray, indices: np.ndarray, axis: Optional[int] = None, out: Optional[np.ndarray] = None
+           ) -> np.ndarray:
+    """np.take for indices in range by construction. mode="wrap" because numpy's default ("raise") checks each
+    index and, with ``out``, gathers into a buffer first: about twice the time per gather (numpy 2.4,
+    docs/MEASUREMENTS.md)."""
+    return np.take(a, indices, axis=axis, out=out, mode="wrap")
 
 
 def fill_sampling_holes(sums: np.ndarray, min_count: float, min_neighbours: int, in_place: bool = False
@@ -39,7 +48,7 @@ def fill_sampling_holes(sums: np.ndarray, min_count: float, min_neighbours: int,
     near = (holes[None, :] + offsets[:, None]).ravel()
     gathered = np.empty((sums.shape[0], near.size), dtype=flat.dtype)
     for k in range(sums.shape[0]):
-        np.take(flat[k], near, out=gathered[k], mode="wrap")   # in range (no border holes); "raise" buffers out
+        gather(flat[k], near, out=gathered[k])               # in range: no hole is on the border
     gathered = gathered.reshape(sums.shape[0], 8, holes.size)
     pooled = gathered[:, 0].copy()
     for j in range(1, 8):

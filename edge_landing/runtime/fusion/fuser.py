@@ -45,6 +45,7 @@ import numpy as np
 from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount, ned_from_camera
 from edge_landing.runtime.core.messages import EVIDENCE_NETWORK_ONLY, Prediction, Target, VehicleState
 from edge_landing.runtime.core.target_frames import aim_from_offset
+from edge_landing.runtime.fusion.cells import gather
 from edge_landing.runtime.fusion.config import FusionConfig
 from edge_landing.runtime.fusion.confirm import GeometryConfirmation, focus_candidates
 from edge_landing.runtime.fusion.grid import CellRules, GridView, TopDownGrid
@@ -65,13 +66,6 @@ def _resize(a: np.ndarray, hw: tuple[int, int], interpolation: int) -> np.ndarra
     if a.shape[:2] == tuple(hw):
         return a
     return cv2.resize(a, (hw[1], hw[0]), interpolation=interpolation)
-
-
-def _take(a: np.ndarray, indices: np.ndarray, axis: Optional[int] = None, out: Optional[np.ndarray] = None
-          ) -> np.ndarray:
-    """np.take for indices in range by construction. mode="wrap" because numpy's default ("raise") checks each
-    index and, with ``out``, gathers into a buffer first: about twice the time per gather (numpy 2.4, docs/MEASUREMENTS.md)."""
-    return np.take(a, indices, axis=axis, out=out, mode="wrap")
 
 
 def _all_within(a: np.ndarray, lo: float, hi: float) -> bool:
@@ -342,32 +336,32 @@ class LandingFuser:
         idx = np.flatnonzero(keep)                                     # flat index into the (h-2)×(w-2) interior
         if idx.size == 0:
             return 0
-        # Gathers (_take) with integer indices on contiguous arrays: boolean masks on strided views and fancy
+        # Gathers (cells.gather) with integer indices on contiguous arrays: boolean masks on strided views and fancy
         # indexing are several times slower here. Pixels are put in lattice order once (fusion.splat).
         su, sv, pts = su.reshape(3, -1), sv.reshape(3, -1), pts.reshape(3, -1)
-        keys = footprint_keys(_take(su[:2], idx, axis=1), _take(sv[:2], idx, axis=1), cfg.splat_spacing_m,
+        keys = footprint_keys(gather(su[:2], idx, axis=1), gather(sv[:2], idx, axis=1), cfg.splat_spacing_m,
                               cfg.max_footprint_m, cfg.max_samples_per_axis)
         order = np.argsort(keys, kind="stable")
-        keys, idx = _take(keys, order), _take(idx, order)
-        full = _take(self._interior_to_full, idx)                   # the same pixels in the h×w image
+        keys, idx = gather(keys, order), gather(idx, order)
+        full = gather(self._interior_to_full, idx)                   # the same pixels in the h×w image
         # Per pixel and quantity (row, column, height, horizontal, flat): step u, step v, value (fusion.splat),
         # in the grid's cell units so that the samples need no further arithmetic before binning.
         shift, scale = self._grid.cell_frame((0.0, 0.0, 0.0) if position is None else tuple(position.tolist()))
         columns = np.empty((5, 3, idx.size), dtype=np.float32)
         for k in range(3):
-            _take(su[k], idx, out=columns[k, 0])
-            _take(sv[k], idx, out=columns[k, 1])
-            _take(pts[k], full, out=columns[k, 2])
+            gather(su[k], idx, out=columns[k, 0])
+            gather(sv[k], idx, out=columns[k, 1])
+            gather(pts[k], full, out=columns[k, 2])
         columns[:3, 2] += shift[:, None]
         columns[:2] *= scale
         columns[3:, :2] = 0.0
         if hvo_h is not None:
-            _take(hvo_h.reshape(-1), full, out=columns[3, 2])
+            gather(hvo_h.reshape(-1), full, out=columns[3, 2])
         else:
             columns[3, 2] = 1.0
-        nz_k = _take(nz.reshape(-1), idx)
+        nz_k = gather(nz.reshape(-1), idx)
         cos2 = np.float32(math.cos(cfg.max_slope_rad) ** 2)
-        np.greater_equal(nz_k * nz_k, cos2 * _take(nn.reshape(-1), idx), out=columns[4, 2], casting="unsafe")
+        np.greater_equal(nz_k * nz_k, cos2 * gather(nn.reshape(-1), idx), out=columns[4, 2], casting="unsafe")
         return self._grid.add_cells(splat(columns, keys, cfg.max_samples_per_axis))
 
     def _make_target(self, pred: Prediction, choice: Choice, pose: tuple[Attitude, Mount],

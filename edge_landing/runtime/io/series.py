@@ -13,7 +13,13 @@ from typing import Deque, Optional
 
 import numpy as np
 
-__all__ = ["TimeSeries"]
+__all__ = ["TimeSeries", "wrap_angles"]
+
+
+def wrap_angles(delta: np.ndarray) -> np.ndarray:
+    """Angle differences (rad) taken the short way round, in [-pi, pi) (yaw wraps at ±pi)."""
+    wrapped: np.ndarray = (delta + math.pi) % (2 * math.pi) - math.pi
+    return wrapped
 
 
 class TimeSeries:
@@ -61,8 +67,8 @@ class TimeSeries:
             v0, v1 = self.values[before], self.values[after]
             w = 0.0 if t1 == t0 else (t_s - t0) / (t1 - t0)
             delta = v1 - v0
-            if angles:  # interpolate the short way round (yaw wraps at ±pi)
-                delta = (delta + math.pi) % (2 * math.pi) - math.pi
+            if angles:  # interpolate the short way round
+                delta = wrap_angles(delta)
             out: np.ndarray = v0 + w * delta
             return out
         best = min((j for j in (before, after) if j is not None), key=lambda j: abs(times[j] - t_s))

@@ -48,7 +48,7 @@ from edge_landing.runtime.core.messages import TelemetryMatch, VehicleState
 from edge_landing.runtime.io.clock_offset import ClockOffset
 from edge_landing.runtime.io.gimbal import GimbalSeries
 from edge_landing.runtime.io.position_resets import VelocityCheck
-from edge_landing.runtime.io.series import TimeSeries
+from edge_landing.runtime.io.series import TimeSeries, wrap_angles
 from edge_landing.runtime.io.telemetry_config import TelemetryConfig
 
 __all__ = ["ClockOffset", "TelemetryBuffer", "TelemetryConfig", "TelemetryMatch", "RANGEFINDER_DOWN"]
@@ -157,9 +157,7 @@ class TelemetryBuffer:
             return None
         dt = t_s - series.times[-1]
         delta = value - series.values[-1]
-        if angles:
-            delta = (delta + math.pi) % (2 * math.pi) - math.pi
-        seen = delta / dt
+        seen = (wrap_angles(delta) if angles else delta) / dt
         last = series.rates[-1]
         said = rate if last is None else 0.5 * (rate + last)
         tolerance = c.rate_tolerance_rad_s if angles else c.rate_tolerance_mps
