@@ -78,6 +78,8 @@ def test_truncated_video_ends_cleanly(assets, tmp_path, capsys):
 
 @pytest.mark.parametrize("args, message", [
     (["--camera", "/dev/video93"], "/dev/video93 not found"),
+    (["--camera", "/nonexistent/flight.mp4"], "video file /nonexistent/flight.mp4 does not exist"),
+    (["--camera", "/nonexistent/frames/*.png"], "no images found at /nonexistent/frames/*.png"),
     (["--model", "missing.onnx"], "does not exist"),
     (["--depth-model", "x.onnx"], "not both"),
     (["--autopilot", "betaflight"], "ardupilot, px4"),
@@ -97,6 +99,7 @@ def test_truncated_video_ends_cleanly(assets, tmp_path, capsys):
     (["--mav-compid", "0"], "--mav-compid"),
     (["--log", "/proc/version"], "cannot write --log /proc/version"),
     (["--camera", "sim:bogusstyle"], "unsupported world style 'bogusstyle'"),
+    (["--camera", "sim-follow:bogusstyle:3@udpin:127.0.0.1:9"], "unsupported world style 'bogusstyle'"),
     (["--mav", "udpout:127.0.0.1:99999"], "port 99999 is not in 1-65535"),
     (["--mav", "udpout:127.0.0.1:9", "--mav-key", "/nonexistent/key"], "signing key file /nonexistent/key"),
 ])
@@ -107,7 +110,7 @@ def test_bad_input_is_one_line_and_exit_2(assets, args, message, capsys):
     captured = capsys.readouterr()
     err = captured.err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
-    if "--mav" in args or "--mav-key" in args:       # refused before the model is chosen and loaded
+    if "--mav" in args or "--mav-key" in args or "--camera" in args:   # refused before the model is chosen and loaded
         assert "edge-run: model" not in captured.out, captured.out
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import time
 
 import cv2
@@ -10,7 +11,7 @@ import pytest
 
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.io.grabber import Grabber
-from edge_landing.runtime.io.sources import Reader, SourceConfig, SourceKind
+from edge_landing.runtime.io.sources import Reader, SourceConfig, SourceKind, check_source_exists, sim_style_seed
 from tests.run_helpers import write_video
 
 
@@ -238,3 +239,31 @@ def test_replayed_flight_frames_carry_the_flights_own_times(tmp_path, pause_s):
     lags = [f.clock_lag_s for f in frames]
     if pause_s:
         assert lags[-1] > lags[0] + 0.5  # about 5 × (0.25 - 0.1) s behind real time by the end
+
+
+@pytest.mark.parametrize("camera, expected", [
+    ("sim", ("suburban", 0)),
+    ("sim:urban:3", ("urban", 3)),
+    ("sim:7", ("suburban", 7)),
+    ("sim-follow:urban:7:gimbal@udpin:127.0.0.1:15000", ("urban", 7)),   # neither "gimbal" nor the URL is a style
+])
+def test_sim_style_and_seed_from_the_camera_argument(camera, expected):
+    assert sim_style_seed(camera) == expected
+
+
+@pytest.mark.parametrize("camera, message", [
+    ("/dev/video97", "/dev/video97 not found"),
+    ("/nonexistent/flight.mp4", "video file /nonexistent/flight.mp4 does not exist"),
+    ("/nonexistent/*.jpg", "no images found at /nonexistent/*.jpg"),
+])
+def test_a_missing_input_is_told_without_opening_anything(camera, message):
+    with pytest.raises(InputError, match=re.escape(message)):
+        check_source_exists(SourceConfig.from_string(camera))
+
+
+def test_inputs_that_are_there_pass_the_existence_check(tmp_path):
+    (tmp_path / "a.png").write_bytes(b"not opened by the check")
+    video = tmp_path / "v.mp4"
+    video.write_bytes(b"")
+    for camera in (str(tmp_path), str(tmp_path / "*.png"), str(video), "rtsp://192.0.2.1/stream"):
+        check_source_exists(SourceConfig.from_string(camera))

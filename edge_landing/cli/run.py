@@ -53,7 +53,7 @@ from edge_landing.runtime.io.gimbal import GimbalSeries, GimbalSource
 from edge_landing.runtime.io.grabber import Grabber
 from edge_landing.runtime.io.mavlink_link import Autopilot, LinkConfig, MavlinkLink, check_url, load_signing_key
 from edge_landing.runtime.io.send_rate import check_cap_hz
-from edge_landing.runtime.io.sources import SourceConfig, SourceKind
+from edge_landing.runtime.io.sources import SourceConfig, SourceKind, check_source_exists, sim_style_seed
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.perception.backend import RuntimeRequest
 from edge_landing.runtime.perception.precision import Precision
@@ -254,12 +254,7 @@ def source_record(cfg: RunConfig, kind: SourceKind, model_name: str) -> Dict[str
     style: Optional[str] = None
     seed: Optional[int] = None
     if kind in (SourceKind.SIM, SourceKind.SIM_FOLLOW):
-        style, seed = "suburban", 0
-        for part in cfg.camera.partition("@")[0].split(":")[1:]:
-            if part.isdigit():
-                seed = int(part)
-            elif part:
-                style = part
+        style, seed = sim_style_seed(cfg.camera)
     return run_record(__version__, cfg.camera, kind.value, style, seed, cfg.poses, model_name,
                       cfg.autopilot.value if cfg.mav else None, tlog=cfg.tlog)
 
@@ -295,6 +290,7 @@ def run(cfg: RunConfig, out: Optional[TextIO] = None) -> int:
     from edge_landing.runtime.pipeline.threads import limit_side_threads
 
     limit_side_threads()
+    check_source_exists(SourceConfig.from_string(cfg.camera))   # one line now, not after seconds of model probing
     inference = load_inference(cfg, out)
     calibration = load_calibration(cfg.calibration, inference.models[0].sha256) if cfg.calibration else None
     src = SourceConfig(camera=cfg.camera, kind=SourceKind.from_string(cfg.camera), width=cfg.camera_width,

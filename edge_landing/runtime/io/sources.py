@@ -180,10 +180,7 @@ class VideoReader(Reader):
         target: int | str = config.camera
         if config.kind is SourceKind.DEVICE:
             target = int(config.camera) if config.camera.isdigit() else config.camera
-            node = f"/dev/video{target}" if isinstance(target, int) else target
-            if os.path.isdir("/dev") and not os.path.exists(node):
-                raise InputError(f"camera {node} not found (no such device); expected a V4L2 device such as "
-                                 f"/dev/video0 or an index; present: {sorted(glob.glob('/dev/video*')) or 'none'}")
+            check_source_exists(config)
             self.cap = cv2.VideoCapture(target, cv2.CAP_V4L2)
             self.cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the driver's queue would add latency; we want the newest
             if config.width and config.height:
@@ -192,9 +189,7 @@ class VideoReader(Reader):
             if config.fps:
                 self.cap.set(cv2.CAP_PROP_FPS, config.fps)
         elif config.kind is SourceKind.FILE:
-            if not Path(config.camera).is_file():
-                raise InputError(f"video file {target} does not exist; expected a video (mp4, avi, ...), an image "
-                                 f"folder or glob, a /dev/video device, an rtsp:// URL or 'sim'")
+            check_source_exists(config)
             self.cap = cv2.VideoCapture(config.camera)
             self._expected_frames = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         else:
@@ -237,13 +232,9 @@ class ImageFolderReader(Reader):
 
     def __init__(self, config: SourceConfig):
         pattern = config.camera
-        if Path(pattern).is_dir():
-            paths = sorted(p for p in Path(pattern).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        else:
-            paths = sorted(Path(p) for p in glob.glob(pattern) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
+        paths = _folder_images(pattern)
         if not paths:
-            raise InputError(f"no images found at {pattern}; expected a folder or glob of "
-                             f"{'/'.join(s[1:] for s in IMAGE_SUFFIXES)} files")
+            raise InputError(_no_images(pattern))
         self.name = pattern
         self.paths: List[Path] = paths
         self._next = 0
@@ -267,6 +258,54 @@ class ImageFolderReader(Reader):
                 return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
             log.warning("skipping %s: not a readable image (corrupt or not an image)", path)
         return None
+
+
+def check_source_exists(config: SourceConfig) -> None:
+    """Raise the one-line InputError that opening ``config`` would raise for an input that is not there (a missing
+    device node, video file or image folder; a sim camera without the ``[sim]`` extra), without opening it:
+    edge-run asks before it loads and probes the networks, which takes seconds."""
+    kind, camera = config.kind, config.camera
+    if kind is SourceKind.DEVICE:
+        node = f"/dev/video{camera}" if camera.isdigit() else camera
+        if os.path.isdir("/dev") and not os.path.exists(node):
+            raise InputError(f"camera {node} not found (no such device); expected a V4L2 device such as "
+                             f"/dev/video0 or an index; present: {sorted(glob.glob('/dev/video*')) or 'none'}")
+    elif kind is SourceKind.FILE and not Path(camera).is_file():
+        raise InputError(f"video file {camera} does not exist; expected a video (mp4, avi, ...), an image "
+                         f"folder or glob, a /dev/video device, an rtsp:// URL or 'sim'")
+    elif kind is SourceKind.FOLDER and not _folder_images(camera):
+        raise InputError(_no_images(camera))
+    elif kind in (SourceKind.SIM, SourceKind.SIM_FOLLOW):
+        check_sim_extra(kind.value)
+        from edge_landing.runtime.core.errors import require_extra
+
+        if kind is SourceKind.SIM:
+            require_extra("edge_landing.sim", "sim").Style.from_string(sim_style_seed(camera)[0])
+        else:
+            require_extra("edge_landing.sim.follow", "sim").FollowSpec.parse(camera)
+
+
+def sim_style_seed(camera: str) -> tuple[str, int]:
+    """(style, seed) of ``sim[:STYLE][:SEED]`` or ``sim-follow[:STYLE[:SEED]][:gimbal][@URL]``: suburban and 0
+    where not given (the style is not checked here)."""
+    style, seed = "suburban", 0
+    for part in camera.partition("@")[0].split(":")[1:]:
+        if part.isdigit():
+            seed = int(part)
+        elif part and part != "gimbal":
+            style = part
+    return style, seed
+
+
+def _folder_images(pattern: str) -> List[Path]:
+    """The images of a folder or a glob, sorted."""
+    if Path(pattern).is_dir():
+        return sorted(p for p in Path(pattern).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    return sorted(Path(p) for p in glob.glob(pattern) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
+
+
+def _no_images(pattern: str) -> str:
+    return f"no images found at {pattern}; expected a folder or glob of {'/'.join(s[1:] for s in IMAGE_SUFFIXES)} files"
 
 
 def check_sim_extra(camera: str) -> None:
@@ -303,12 +342,7 @@ class SimReader(Reader):
 
         check_sim_extra("sim")
         sim = require_extra("edge_landing.sim", "sim")
-        style, seed = "suburban", 0
-        for part in config.camera.split(":")[1:]:
-            if part.isdigit():
-                seed = int(part)
-            elif part:
-                style = part
+        style, seed = sim_style_seed(config.camera)
         sim.Style.from_string(style)   # an unknown style fails in one line here, before the world is built
         width, height = (config.width, config.height) if config.width and config.height else self.DEFAULT_SIZE
         log.info("building the synthetic %s world (seed %d) for the sim camera...", style, seed)
