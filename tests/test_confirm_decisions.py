@@ -87,7 +87,7 @@ def test_geometry_confirms_ground_the_network_calls_horizontal_but_not_flat_and_
 
 
 def test_focus_candidates_take_the_best_spots_that_are_far_enough_apart():
-    from edge_landing.runtime.fusion.confirm import focus_candidates
+    from edge_landing.runtime.fusion.focus import focus_candidates
     from edge_landing.runtime.fusion.grid import GridView
 
     config = FusionConfig()

@@ -28,6 +28,7 @@ import numpy as np
 from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount
 from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, EVIDENCE_IMAGE_POSE, VehicleState
 from edge_landing.runtime.fusion.deferred import DeferredRun, Done, StageTiming
+from edge_landing.runtime.fusion.focus import KnownObstacles
 from edge_landing.runtime.fusion.grid import GridView, clearance_from_mask
 from edge_landing.runtime.fusion.image_motion import ImagePose
 from edge_landing.runtime.fusion.landing import Choice
@@ -38,36 +39,6 @@ from edge_landing.runtime.fusion.result import ImagePlacement
 
 if TYPE_CHECKING:
     from edge_landing.runtime.fusion.config import FusionConfig
-
-
-def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, float], config: FusionConfig,
-                     count: int = 3, separation_m: float = 10.0) -> np.ndarray:
-    """Up to ``count`` network-landable spots (K×3 NED or grid frame) for the motion stage's window: ``first``
-    (the network's spot), then the best-scoring others at least ``separation_m`` from those already taken.
-    The stage measures where a keyframe sees best (fusion.motion), so ground off the vehicle's line of
-    flight gets measured too."""
-    need = config.required_clearance_m
-    idx = np.flatnonzero(view.clearance_m.ravel() >= need - 1e-6)
-    out = [np.asarray(first, np.float64)]
-    if idx.size == 0 or count <= 1:
-        return np.stack(out)
-    rows = idx // view.shape[1]                  # (np.divmod and np.hypot are several times slower)
-    cols = idx - rows * view.shape[1]
-    north = view.north0_m + (rows + 0.5) * view.cell_m
-    east = view.east0_m + (cols + 0.5) * view.cell_m
-    score = np.minimum(view.clearance_m.ravel()[idx], config.clearance_saturation_m) \
-        - config.travel_penalty_per_m * np.sqrt(np.square(north - here_ne[0]) + np.square(east - here_ne[1]))
-    # Greedy in score order (ties: grid order), vectorised: each pick is the best cell still far enough from all
-    # taken so far; thousands of landable cells would otherwise be walked one by one in Python.
-    free = np.ones(idx.size, dtype=bool)
-    for _ in range(count - 1):
-        free &= np.square(north - out[-1][0]) + np.square(east - out[-1][1]) >= separation_m * separation_m
-        if not free.any():
-            break
-        i = int(np.argmax(np.where(free, score, -np.inf)))
-        down, _, _ = view.cell_stats(int(rows[i]), int(cols[i]))
-        out.append(np.array([north[i], east[i], down if math.isfinite(down) else first[2]]))
-    return np.stack(out)
 
 
 @dataclass(frozen=True)
@@ -113,6 +84,7 @@ class GeometryConfirmation:
         self._runner: DeferredRun[_StageOutcome] = DeferredRun(config.geometry_timing, "geometry")
         self._last_run_s: Optional[float] = None
         self._frame: tuple[str, int] = (POSE_TELEMETRY, 0)   # pose source and odometry epoch of ``grid``
+        self._known: Optional[KnownObstacles] = None         # obstacles of the last view, in local NED
 
     def reset(self) -> None:
         self._runner.cancel()           # before the stage's state goes: a job in flight still uses it
@@ -121,7 +93,7 @@ class GeometryConfirmation:
         self.mount_check.reset()
         self.mount_estimate = None
         self.view, self.note, self._last_run_s, self.ran, self.last = None, "", None, False, None
-        self.placement = None
+        self.placement, self._known = None, None
 
     def begin_frame(self) -> None:
         """A new fused frame: the stage has not run for it (yet)."""
@@ -131,13 +103,13 @@ class GeometryConfirmation:
             position: Optional[np.ndarray], t_cap: float,
             focus: Optional[Callable[[], np.ndarray]]) -> Optional[GeometryView]:
         """Run the motion stage on this frame (its window centred on one of the network's candidate spots
-        ``focus()``, K×3 NED, the first preferred; see focus_candidates) when due, and return the evidence
+        ``focus()``, K×3 NED, the first preferred; see fusion.focus) when due, and return the evidence
         aligned with the fusion grid ``view`` (or None). ``focus`` is called only when the stage runs: the
         candidates cost a pass over the grid that most frames (between runs) do not need.
 
         Overlapped (FusionConfig.geometry_timing), a stage run handed over by an earlier frame is collected
         first, and this frame's run is handed to a thread: its evidence reaches the next fused frame."""
-        self.view, self.ran, self.stage_s, self.placement = None, False, math.nan, None
+        self.view, self.ran, self.stage_s, self.placement, self._known = None, False, math.nan, None, None
         collected = self._runner.pending
         if collected:
             self._apply(self._runner.collect())
@@ -173,7 +145,14 @@ class GeometryConfirmation:
         if position is None:           # fusion's grid is around the vehicle, this one in the odometry's frame
             north0, east0 = north0 + float(origin[0]), east0 + float(origin[1])
         self.view = self.grid.view(north0, east0, (int(view.shape[0]), int(view.shape[1])), t_cap)
+        if position is not None:       # (in the odometry's frame the cells are not the next frame's cells)
+            self._known = KnownObstacles(self.view.obstacle, north0, east0)
         return self.view
+
+    def known_obstacles(self) -> Optional[KnownObstacles]:
+        """Where the last frame's geometry evidence saw obstacles, in local NED (None: no evidence, or no
+        telemetry position): for fusion.focus, before this frame's :meth:`run`."""
+        return self._known
 
     def _submit(self, image: np.ndarray, state: Optional[VehicleState], position: Optional[np.ndarray], agl: float,
                 t_cap: float, focus: Optional[Callable[[], np.ndarray]]) -> None:

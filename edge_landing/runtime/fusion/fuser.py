@@ -47,7 +47,8 @@ from edge_landing.runtime.core.messages import EVIDENCE_NETWORK_ONLY, Prediction
 from edge_landing.runtime.core.target_frames import aim_from_offset
 from edge_landing.runtime.fusion.cells import gather
 from edge_landing.runtime.fusion.config import FusionConfig
-from edge_landing.runtime.fusion.confirm import GeometryConfirmation, focus_candidates
+from edge_landing.runtime.fusion.confirm import GeometryConfirmation
+from edge_landing.runtime.fusion.focus import focus_candidates
 from edge_landing.runtime.fusion.grid import CellRules, GridView, TopDownGrid
 from edge_landing.runtime.fusion.landing import Choice, KeptSpot, choose_spot
 from edge_landing.runtime.fusion.motion import ParallaxResult
@@ -265,7 +266,8 @@ class LandingFuser:
                 setattr(self, name, None)
         proposal = choose_spot(self._view, here, cfg, self._tracked)
         focus = None if proposal is None else partial(
-            focus_candidates, self._view, np.array([proposal.north_m, proposal.east_m, proposal.down_m]), here, cfg)
+            focus_candidates, self._view, np.array([proposal.north_m, proposal.east_m, proposal.down_m]), here, cfg,
+            known=self._confirm.known_obstacles())
         t_geo = time.perf_counter()
         geo = self._confirm.run(self._view, image, state, position, t_cap, focus)
         timings["geometry"] = time.perf_counter() - t_geo      # on this frame's path

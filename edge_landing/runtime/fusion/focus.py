@@ -1,0 +1,102 @@
+"""Where the motion stage looks: candidate spots for its window (ARCHITECTURE.md §11), pure numpy + OpenCV.
+
+The stage measures one window per run, centred on one of a few candidate spots: the network's own spot first,
+then the best-scoring other network-landable cells, far enough apart. A spot that geometry has already seen an
+obstacle beside (within the required clearance) cannot be confirmed by measuring it again, so neither it nor
+any other candidate is taken there: the window goes to ground geometry has not ruled out. Without this a
+network that keeps proposing a car or a roof's edge (a network trained elsewhere, or the flat-lying model of
+benchmarks/lying_model.py) keeps the stage measuring the one spot it already rejected, and nothing else is ever
+confirmed. Where to look is all this changes: what confirms a spot is fusion.confirm's rule, as before.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Optional
+
+import cv2
+import numpy as np
+
+from edge_landing.runtime.fusion.grid import GridView
+
+if TYPE_CHECKING:
+    from edge_landing.runtime.fusion.config import FusionConfig
+
+__all__ = ["KnownObstacles", "focus_candidates", "ruled_out"]
+
+
+@dataclass(frozen=True)
+class KnownObstacles:
+    """Cells where geometry saw an obstacle (``GeometryView.obstacle``), on a grid whose corner cell starts at
+    (``north0_m``, ``east0_m``), local NED, cells of the fusion grid's size. A snapshot: never written into."""
+
+    obstacle: np.ndarray
+    north0_m: float
+    east0_m: float
+
+
+def ruled_out(view: GridView, known: KnownObstacles, radius_m: float) -> np.ndarray:
+    """Cells of ``view`` (bool, its shape) within ``radius_m`` of a known obstacle: a disc of that radius centred
+    there would hold it. ``known`` may lie on an earlier position of the grid (it moves by whole cells)."""
+    rows, cols = view.shape
+    dr = int(round((known.north0_m - view.north0_m) / view.cell_m))   # known cell (r, c) is view cell (r+dr, c+dc)
+    dc = int(round((known.east0_m - view.east0_m) / view.cell_m))
+    src = known.obstacle
+    shifted = np.zeros((rows, cols), np.uint8)
+    r0, r1 = max(0, dr), min(rows, src.shape[0] + dr)
+    c0, c1 = max(0, dc), min(cols, src.shape[1] + dc)
+    if r0 >= r1 or c0 >= c1:
+        return shifted.astype(bool)
+    shifted[r0:r1, c0:c1] = src[r0 - dr:r1 - dr, c0 - dc:c1 - dc]
+    if not shifted.any():
+        return shifted.astype(bool)
+    reach = int(math.ceil(radius_m / view.cell_m))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
+    return np.asarray(cv2.dilate(shifted, disc), bool)
+
+
+def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, float], config: FusionConfig,
+                     count: int = 3, separation_m: float = 10.0, known: Optional[KnownObstacles] = None
+                     ) -> np.ndarray:
+    """Up to ``count`` network-landable spots (K×3 NED or grid frame) for the motion stage's window: ``first``
+    (the network's spot), then the best-scoring others at least ``separation_m`` from those already taken.
+    The stage measures where a keyframe sees best (fusion.motion), so ground off the vehicle's line of
+    flight gets measured too. With ``known`` obstacles (on the same frame as ``view``), no candidate is taken
+    within the required clearance of one, ``first`` included; when that leaves none, ``first`` alone."""
+    need = config.required_clearance_m
+    blocked = None if known is None else ruled_out(view, known, need)
+    out: list[np.ndarray] = []
+    cell = view.cell_of(float(first[0]), float(first[1]))
+    if blocked is None or cell is None or not blocked[cell]:
+        out.append(np.asarray(first, np.float64))
+    flat = view.clearance_m.ravel() >= need - 1e-6
+    if blocked is not None:
+        flat &= ~blocked.ravel()
+    idx = np.flatnonzero(flat)
+    if idx.size and count > len(out):
+        out += _spread_picks(view, idx, here_ne, config, count - len(out), separation_m, out, first)
+    return np.stack(out) if out else np.asarray(first, np.float64)[None, :]
+
+
+def _spread_picks(view: GridView, idx: np.ndarray, here_ne: tuple[float, float], config: FusionConfig, count: int,
+                  separation_m: float, taken: list[np.ndarray], first: np.ndarray) -> list[np.ndarray]:
+    """Greedy in score order (ties: grid order), vectorised: each pick is the best cell of ``idx`` still
+    ``separation_m`` from every spot taken; thousands of landable cells would otherwise be walked one by one."""
+    rows = idx // view.shape[1]                  # (np.divmod and np.hypot are several times slower)
+    cols = idx - rows * view.shape[1]
+    north = view.north0_m + (rows + 0.5) * view.cell_m
+    east = view.east0_m + (cols + 0.5) * view.cell_m
+    score = np.minimum(view.clearance_m.ravel()[idx], config.clearance_saturation_m) \
+        - config.travel_penalty_per_m * np.sqrt(np.square(north - here_ne[0]) + np.square(east - here_ne[1]))
+    free = np.ones(idx.size, dtype=bool)
+    for spot in taken:
+        free &= np.square(north - spot[0]) + np.square(east - spot[1]) >= separation_m * separation_m
+    picks: list[np.ndarray] = []
+    for _ in range(count):
+        if not free.any():
+            break
+        i = int(np.argmax(np.where(free, score, -np.inf)))
+        down, _, _ = view.cell_stats(int(rows[i]), int(cols[i]))
+        picks.append(np.array([north[i], east[i], down if math.isfinite(down) else first[2]]))
+        free &= np.square(north - north[i]) + np.square(east - east[i]) >= separation_m * separation_m
+    return picks

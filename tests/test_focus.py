@@ -1,0 +1,54 @@
+"""Where the motion stage looks (fusion.focus): not again where geometry already saw an obstacle."""
+from __future__ import annotations
+
+import numpy as np
+
+from edge_landing.runtime.fusion.config import FusionConfig
+from edge_landing.runtime.fusion.focus import KnownObstacles, focus_candidates, ruled_out
+from edge_landing.runtime.fusion.grid import GridView
+
+
+def _everything_landable(size: int = 40, cell_m: float = 1.0, north0_m: float = 0.0, east0_m: float = 0.0) -> GridView:
+    """A network that calls every cell landable with saturated clearance (the flat-lying model)."""
+    clearance = np.full((size, size), 10.0, np.float32)
+    sums = np.zeros((5, size, size))
+    sums[0], sums[1] = 1.0, 2.0                       # every cell observed once, 2 m down
+    return GridView("ned", cell_m, north0_m, east0_m, 0.0, sums, clearance > 0, clearance)
+
+
+def test_known_obstacles_rule_out_the_disc_around_them_on_a_moved_grid():
+    view = _everything_landable(north0_m=3.0, east0_m=-2.0)        # the grid moved by (3, -2) cells since
+    obstacle = np.zeros((40, 40), bool)
+    obstacle[10, 10] = True                                         # at north 10.5, east 10.5 on the old grid
+    out = ruled_out(view, KnownObstacles(obstacle, 0.0, 0.0), radius_m=2.0)
+    rows, cols = np.nonzero(out)
+    assert out[7, 12] and out[7 + 2, 12] and out[7, 12 - 2] and not out[7 + 3, 12] and not out[7 + 2, 12 + 2]
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (5, 9, 10, 14)   # the same place in NED
+    far = ruled_out(view, KnownObstacles(obstacle, 500.0, 0.0), radius_m=2.0)  # no overlap with this grid
+    assert not far.any()
+
+
+def test_the_networks_spot_beside_a_known_obstacle_gives_its_window_to_other_ground():
+    config = FusionConfig()
+    view = _everything_landable()
+    first = np.array([20.5, 20.5, 2.0])
+    without = focus_candidates(view, first, (0.0, 0.0), config)
+    np.testing.assert_allclose(without[0], first)                  # nothing known: the network's spot first
+    obstacle = np.zeros((40, 40), bool)
+    obstacle[21, 20] = obstacle[0:3, 0:3] = True                    # beside the spot, and at the best other cell
+    picks = focus_candidates(view, first, (0.0, 0.0), config, known=KnownObstacles(obstacle, 0.0, 0.0))
+    assert len(picks) == 3
+    blocked = ruled_out(view, KnownObstacles(obstacle, 0.0, 0.0), config.required_clearance_m)
+    for north, east, _ in picks:
+        assert not blocked[int(north), int(east)], (north, east)    # none within the clearance of an obstacle
+    assert not np.any(np.all(np.isclose(picks, first), axis=1))     # the rejected spot is not measured again
+    gaps = [np.hypot(*(a[:2] - b[:2])) for i, a in enumerate(picks) for b in picks[i + 1:]]
+    assert min(gaps) >= 10.0
+
+
+def test_when_everything_is_ruled_out_the_networks_spot_is_kept():
+    config = FusionConfig()
+    view = _everything_landable(size=10)
+    first = np.array([5.5, 5.5, 2.0])
+    picks = focus_candidates(view, first, (0.0, 0.0), config, known=KnownObstacles(np.ones((10, 10), bool), 0.0, 0.0))
+    np.testing.assert_allclose(picks, [first])
