@@ -29,7 +29,7 @@ def test_known_obstacles_rule_out_the_disc_around_them_on_a_moved_grid():
 
 
 def test_the_networks_spot_beside_a_known_obstacle_gives_its_window_to_other_ground():
-    config = FusionConfig()
+    config = FusionConfig(focus_skip_obstacles_m=FusionConfig().required_clearance_m)
     view = _everything_landable()
     first = np.array([20.5, 20.5, 2.0])
     without = focus_candidates(view, first, (0.0, 0.0), config)
@@ -46,9 +46,39 @@ def test_the_networks_spot_beside_a_known_obstacle_gives_its_window_to_other_gro
     assert min(gaps) >= 10.0
 
 
+def test_a_radius_of_zero_skips_only_the_obstacles_own_cells():
+    view = _everything_landable()
+    obstacle = np.zeros((40, 40), bool)
+    obstacle[20, 20] = True
+    np.testing.assert_array_equal(ruled_out(view, KnownObstacles(obstacle, 0.0, 0.0), 0.0), obstacle)
+    config = FusionConfig(focus_skip_obstacles_m=0.0)
+    first = np.array([20.5, 20.5, 2.0])                             # on the obstacle: not measured again
+    picks = focus_candidates(view, first, (0.0, 0.0), config, known=KnownObstacles(obstacle, 0.0, 0.0))
+    assert not np.any(np.all(np.isclose(picks, first), axis=1)) and len(picks) == 3
+    beside = np.array([21.5, 20.5, 2.0])                            # beside it: still the first candidate
+    np.testing.assert_allclose(focus_candidates(view, beside, (0.0, 0.0), config,
+                                                known=KnownObstacles(obstacle, 0.0, 0.0))[0], beside)
+
+
+def test_skipping_known_obstacles_is_opt_in():
+    assert FusionConfig().focus_skip_obstacles_m < 0
+
+
 def test_when_everything_is_ruled_out_the_networks_spot_is_kept():
-    config = FusionConfig()
+    config = FusionConfig(focus_skip_obstacles_m=2.0)
     view = _everything_landable(size=10)
     first = np.array([5.5, 5.5, 2.0])
     picks = focus_candidates(view, first, (0.0, 0.0), config, known=KnownObstacles(np.ones((10, 10), bool), 0.0, 0.0))
     np.testing.assert_allclose(picks, [first])
+
+
+def test_a_skip_radius_that_is_not_a_number_is_refused():
+    import math
+
+    import pytest
+
+    from edge_landing.runtime.core.errors import InputError
+
+    for bad in (math.nan, math.inf, -math.inf, 1e9):
+        with pytest.raises(InputError, match="focus_skip_obstacles_m"):
+            FusionConfig(focus_skip_obstacles_m=bad)

@@ -48,9 +48,9 @@ def ruled_out(view: GridView, known: KnownObstacles, radius_m: float) -> np.ndar
     if r0 >= r1 or c0 >= c1:
         return shifted.astype(bool)
     shifted[r0:r1, c0:c1] = src[r0 - dr:r1 - dr, c0 - dc:c1 - dc]
-    if not shifted.any():
-        return shifted.astype(bool)
     reach = int(math.ceil(radius_m / view.cell_m))
+    if reach == 0 or not shifted.any():
+        return shifted.astype(bool)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
     return np.asarray(cv2.dilate(shifted, disc), bool)
 
@@ -62,9 +62,10 @@ def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, fl
     (the network's spot), then the best-scoring others at least ``separation_m`` from those already taken.
     The stage measures where a keyframe sees best (fusion.motion), so ground off the vehicle's line of
     flight gets measured too. With ``known`` obstacles (on the same frame as ``view``), no candidate is taken
-    within the required clearance of one, ``first`` included; when that leaves none, ``first`` alone."""
+    within ``config.focus_skip_obstacles_m`` of one (0: on one), ``first`` included; when that leaves none,
+    ``first`` alone."""
     need = config.required_clearance_m
-    blocked = None if known is None else ruled_out(view, known, need)
+    blocked = None if known is None else ruled_out(view, known, max(config.focus_skip_obstacles_m, 0.0))
     out: list[np.ndarray] = []
     cell = view.cell_of(float(first[0]), float(first[1]))
     if blocked is None or cell is None or not blocked[cell]:
