@@ -61,7 +61,14 @@ def test_a_radius_of_zero_skips_only_the_obstacles_own_cells():
 
 
 def test_skipping_known_obstacles_is_opt_in():
-    assert FusionConfig().focus_skip_obstacles_m < 0
+    config = FusionConfig()
+    assert config.focus_skip_obstacles_m < 0
+    view, first = _everything_landable(), np.array([20.5, 20.5, 2.0])
+    obstacle = np.zeros((40, 40), bool)
+    obstacle[20, 20] = True
+    np.testing.assert_array_equal(focus_candidates(view, first, (0.0, 0.0), config,
+                                                   known=KnownObstacles(obstacle, 0.0, 0.0)),
+                                  focus_candidates(view, first, (0.0, 0.0), config))
 
 
 def test_when_everything_is_ruled_out_the_networks_spot_is_kept():

@@ -28,7 +28,7 @@ import numpy as np
 from edge_landing.runtime.core.camera import Attitude, Intrinsics, Mount
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import VehicleState
-from edge_landing.runtime.io.sources import Reader, SourceConfig
+from edge_landing.runtime.io.sources import Reader, SourceConfig, sim_style_seed
 
 from .effects import Effects, sample_effects
 from .render import Renderer
@@ -244,16 +244,8 @@ class FollowSpec:
     def parse(camera: str) -> FollowSpec:
         """``sim-follow[:STYLE[:SEED]][:gimbal][@URL]``."""
         head, _, url = camera.partition("@")
-        parts = head.split(":")[1:]
-        style, seed, gimbal = Style.SUBURBAN, 0, False
-        for part in parts:
-            if part.isdigit():
-                seed = int(part)
-            elif part == "gimbal":
-                gimbal = True
-            elif part:
-                style = Style.from_string(part)
-        return FollowSpec(style, seed, url or DEFAULT_POSE_URL, gimbal)
+        style, seed = sim_style_seed(camera)
+        return FollowSpec(Style.from_string(style), seed, url or DEFAULT_POSE_URL, "gimbal" in head.split(":")[1:])
 
 
 class FollowReader(Reader):

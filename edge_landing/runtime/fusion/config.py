@@ -55,8 +55,8 @@ class FusionConfig:
     geometry_timing: StageTiming = StageTiming.INLINE
     allow_unconfirmed: bool = False               # send network-only spots when geometry cannot confirm
     # Opt-in (fusion.focus): the motion stage's window skips candidate spots within this many metres of an
-    # obstacle geometry saw (negative: off). Off by default: on the 42 validation flights it raised the lying
-    # model's fused targets 3,718 -> 4,094 but took all of urban 1505's (docs/MEASUREMENTS.md, "Where geometry looks").
+    # obstacle geometry saw (negative: off). Off by default: false obstacle marks also move the window off ground
+    # that measuring again would confirm (docs/MEASUREMENTS.md, "Where geometry looks").
     focus_skip_obstacles_m: float = -1.0
     confirm_on_horizontal: bool = True            # geometry-clear cells HVO calls horizontal may be confirmed
                                                   # without the depth flatness tests (fusion.confirm, §11)

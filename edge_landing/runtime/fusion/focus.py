@@ -61,11 +61,11 @@ def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, fl
     """Up to ``count`` network-landable spots (K×3 NED or grid frame) for the motion stage's window: ``first``
     (the network's spot), then the best-scoring others at least ``separation_m`` from those already taken.
     The stage measures where a keyframe sees best (fusion.motion), so ground off the vehicle's line of
-    flight gets measured too. With ``known`` obstacles (on the same frame as ``view``), no candidate is taken
-    within ``config.focus_skip_obstacles_m`` of one (0: on one), ``first`` included; when that leaves none,
-    ``first`` alone."""
-    need = config.required_clearance_m
-    blocked = None if known is None else ruled_out(view, known, max(config.focus_skip_obstacles_m, 0.0))
+    flight gets measured too. With ``known`` obstacles (on the same frame as ``view``) and
+    ``config.focus_skip_obstacles_m`` >= 0 (negative: off, the default), no candidate is taken within that many
+    metres of one (0: on one), ``first`` included; when that leaves none, ``first`` alone."""
+    need, skip_m = config.required_clearance_m, config.focus_skip_obstacles_m
+    blocked = None if known is None or skip_m < 0 else ruled_out(view, known, skip_m)
     out: list[np.ndarray] = []
     cell = view.cell_of(float(first[0]), float(first[1]))
     if blocked is None or cell is None or not blocked[cell]:
