@@ -172,8 +172,11 @@ def test_runtime_telemetry_at_the_frame_time_is_the_pose_the_camera_rendered():
     assert len(e) >= 20 and e[:, 3].max() > 3.0                           # it flew, fast
     # Same pose. Each side maps the autopilot's clock from one-way stamps of its own socket, which differ by a few
     # ms under load (8 ms apart in a probe with four busy loops on 2 cores): 5 cm is ~14 ms at 3.6 m/s, 0.5° ~9 ms of the
-    # 1 rad/s yaw; a stamp off by one telemetry period (0.1 s) is 0.36 m and 5.7°.
-    assert e[:, 0].max() < 0.05 and np.degrees(e[:, 1:3].max()) < 0.5
+    # 1 rad/s yaw; a stamp off by one telemetry period (0.1 s) is 0.36 m and 5.7°. The typical frame must be within
+    # the few ms; a single frame whose datagram the scheduler held back (22 ms once, in a full CI run) may be off
+    # by up to half a period, still well clear of the one-period error this test exists to catch.
+    assert np.median(e[:, 0]) < 0.05 and np.degrees(np.median(e[:, 1:3], axis=0)).max() < 0.5
+    assert e[:, 0].max() < 0.18 and np.degrees(e[:, 1:3].max()) < 2.9
 
 
 def test_a_gimballed_camera_is_placed_by_the_gimbals_reports_while_the_vehicle_tilts():
