@@ -233,3 +233,26 @@ def test_a_sample_without_a_time_stamp_is_dropped_not_stamped_on_arrival():
     assert not buf.lookup(1000.1, 1000.1).fresh
     assert any(k.startswith("sample without a time stamp") for k in buf.rejected())
     assert buf.add_attitude(0.0, 0.0, 0.0, None, 1000.2)    # a caller without autopilot time: its arrival
+
+
+def test_a_stream_that_stops_while_attitude_flows_gives_frames_none_of_its_quantity():
+    """Freshness is judged on the newest attitude, but every quantity is matched on its own near the capture time:
+    when LOCAL_POSITION_NED and the height stop while ATTITUDE keeps coming (a stream the autopilot dropped), frames
+    are still fresh, yet a capture time past the last position by more than the matching window gets no position
+    and no height, never the last ones held (nothing is then placed in, or re-expressed from, local NED)."""
+    buf, t0, dt = TelemetryBuffer(), 1000.0, 1.0 / RATE_HZ
+    for i in range(int(3 * RATE_HZ)):
+        now, ms = t0 + i * dt, (5.0 + i * dt) * 1000.0
+        buf.add_attitude(0.0, 0.0, 0.3, ms, now)
+        if i < RATE_HZ:                                       # position and height for the first second only
+            buf.add_position(5.0, -3.0, -10.0, ms, now, velocity_ned_mps=(0.0, 0.0, 0.0))
+            buf.add_relative_alt(10.0, ms, now)
+    now = t0 + 3 * dt * RATE_HZ - dt
+    early = buf.lookup(t0 + 0.5, now_s=now)
+    assert early.state is not None and early.state.position_ned_m is not None and early.state.agl_m == 10.0
+    c = buf.config
+    for capture in (t0 + 1.0 + c.window_s + c.max_extrapolation_s + 0.01, now):
+        late = buf.lookup(capture, now_s=now)
+        assert late.state is not None, late.reason                 # the attitude is fresh: the frame is usable
+        assert late.state.position_ned_m is None and late.state.agl_m is None
+    assert buf.newest_state() is not None and buf.newest_state().position_ned_m is None

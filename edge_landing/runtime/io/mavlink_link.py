@@ -20,11 +20,8 @@ import threading
 import time
 from typing import Any, Dict, Optional, Tuple
 
-import numpy as np
-
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.core.messages import Target, VehicleState
-from edge_landing.runtime.core.target_frames import target_ned
 from edge_landing.runtime.io.autopilot_peer import AutopilotPeer
 from edge_landing.runtime.io.autopilot_setup import AutopilotSetup, SetupCheck, SetupConfig
 from edge_landing.runtime.io.link_config import Autopilot, LinkConfig, LinkCounts
@@ -39,8 +36,16 @@ from edge_landing.runtime.io.mavlink_conn import (  # noqa: F401  (re-exported: 
 )
 from edge_landing.runtime.io.send_rate import SendRate
 from edge_landing.runtime.io.setup_reader import SetupReader
-from edge_landing.runtime.io.status_text import chunk_status, next_status_id
+from edge_landing.runtime.io.status_text import StatusSender
 from edge_landing.runtime.io.stream_requests import StreamRequests
+from edge_landing.runtime.io.target_message import (  # noqa: F401  (the frames re-exported)
+    FRAME_BODY_FRD,
+    FRAME_LOCAL_NED,
+    TargetStamps,
+    body_vector,
+    landing_target_message,
+    message_vector,
+)
 from edge_landing.runtime.io.telemetry import TelemetryBuffer
 from edge_landing.runtime.io.telemetry_feed import (  # noqa: F401  (TELEMETRY_MESSAGES re-exported)
     ESTIMATOR_MESSAGES,
@@ -55,8 +60,6 @@ from edge_landing.runtime.io.tlog import TlogWriter
 __all__ = ["Autopilot", "LinkConfig", "LinkCounts", "MavlinkLink", "check_url", "load_mavutil", "load_signing_key",
            "NET_PREFIXES", "FRAME_BODY_FRD", "FRAME_LOCAL_NED", "TELEMETRY_MESSAGES"]
 log = logging.getLogger(__name__)
-FRAME_LOCAL_NED, FRAME_BODY_FRD = 1, 12
-TARGET_TYPE_VISION_OTHER = 3
 
 
 class MavlinkLink:
@@ -71,8 +74,7 @@ class MavlinkLink:
         self._mavutil: Any = None
         self._key: Optional[bytes] = None
         self._lock = threading.Lock()
-        self._status_lock = threading.Lock()                 # one STATUSTEXT's chunks at a time (not _lock: _send takes it)
-        self._status_id = 0                                  # the last chunked STATUSTEXT's id
+        self._status: Optional[StatusSender] = None          # set by start, with pymavlink loaded
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._last_error_s = -math.inf
@@ -80,7 +82,7 @@ class MavlinkLink:
         self._last_heard_s = -math.inf
         self._up_reported: Optional[bool] = None
         self._skip_reported = False
-        self._last_stamp_ms: Optional[int] = None           # LANDING_TARGET time_usec // 1000 last sent
+        self._stamps = TargetStamps()                        # LANDING_TARGET time_usec, always a later millisecond
         # The estimator's status at 2 Hz (each autopilot refuses the other's message id: harmless).
         wanted = {**{name: config.telemetry_rate_hz for name in TELEMETRY_MESSAGES}, **{n: 2.0 for n in ESTIMATOR_MESSAGES}}
         if telemetry.gimbal is not None:
@@ -107,6 +109,7 @@ class MavlinkLink:
         if self.config.key_path:
             self._key = load_signing_key(self.config.key_path)
         self._mavutil = load_mavutil()
+        self._status = StatusSender(self._send, self._mavutil.mavlink)
         self._timesync = TimesyncClient(self.telemetry, self.counts, self._send, self._mavutil.mavlink)
         if self.setup is not None:
             self._setup_reader = SetupReader(self.setup, self._send, self.send_status, self._mavutil.mavlink)
@@ -154,14 +157,10 @@ class MavlinkLink:
         sent as ``time_usec``. The age limit is always judged on the capture time: a re-expressed vector is no
         fresher evidence. ArduPilot takes a message as a new measurement only when its (jitter-corrected)
         millisecond differs from the last one's (AC_PrecLand::retrieve_los_meas), so a stamp not later than the
-        last sent one, in milliseconds, is moved to the next millisecond: a re-send that kept its stamp would be
-        dropped as a duplicate and would not keep ArduPilot's estimator fed, and the stamps only grow."""
-        if not target.valid or target.position_body_frd_m is None:
-            return False, target.reason or "no target"
-        body = np.asarray(target.position_body_frd_m, dtype=np.float64)
-        distance = float(np.linalg.norm(body))
-        if not np.isfinite(body).all() or distance <= 0:
-            return False, "target position is not finite"
+        last sent one, in milliseconds, is moved to the next millisecond (target_message.TargetStamps)."""
+        body, why = body_vector(target)
+        if body is None:
+            return False, why
         now = time.monotonic()
         age = now - clock_lag_s - target.capture_time_s
         if age > self.config.max_target_age_s:
@@ -176,19 +175,15 @@ class MavlinkLink:
         if recorded:
             self.counts.add("held_recorded_armed")
             return False, recorded
-        if self.config.autopilot is Autopilot.PX4:
-            xyz = target_ned(target, state)
-            if xyz is None:
-                self.counts.add("skipped_px4_no_position")
-                if not self._skip_reported:
-                    log.warning("px4 mode: no LOCAL_POSITION_NED telemetry matched frame %d, so no LANDING_TARGET "
-                                "is sent (PX4 needs the target's absolute local position)", target.frame_id)
-                    self._skip_reported = True
-                return False, "px4 needs LOCAL_POSITION_NED telemetry"
-            self._skip_reported = False
-            frame = FRAME_LOCAL_NED
-        else:
-            xyz, frame = body, FRAME_BODY_FRD
+        xyz, frame = message_vector(target, body, state, self.config.autopilot)
+        if xyz is None:
+            self.counts.add("skipped_px4_no_position")
+            if not self._skip_reported:
+                log.warning("px4 mode: no LOCAL_POSITION_NED telemetry matched frame %d, so no LANDING_TARGET "
+                            "is sent (PX4 needs the target's absolute local position)", target.frame_id)
+                self._skip_reported = True
+            return False, "px4 needs LOCAL_POSITION_NED telemetry"
+        self._skip_reported = False
         held = self.setup.hold_reason(now) if self.setup is not None else ""
         if held:
             self.counts.add("held_setup")
@@ -200,43 +195,19 @@ class MavlinkLink:
         if not self._target_rate.allow(now):
             self.counts.add("rate_capped")
             return False, f"rate cap: at most {self.config.max_target_hz:g} LANDING_TARGET/s (--target-hz)"
-        m = self._mavutil.mavlink
-        stamp_us = self._unique_stamp_us(target.capture_time_s if stamp_s is None else stamp_s)
-        msg = m.MAVLink_landing_target_message(
-            stamp_us, 0, frame, _finite(target.angle_x_rad), _finite(target.angle_y_rad),
-            distance, _finite(target.size_x_rad), _finite(target.size_y_rad), float(xyz[0]), float(xyz[1]),
-            float(xyz[2]), [1.0, 0.0, 0.0, 0.0], TARGET_TYPE_VISION_OTHER, 1)
-        if self._send(msg):
+        stamp_us = self._stamps.next_us(target.capture_time_s if stamp_s is None else stamp_s)
+        if self._send(landing_target_message(self._mavutil.mavlink, target, xyz, frame, stamp_us)):
             self.counts.add("targets")
-            self._last_stamp_ms = stamp_us // 1000
+            self._stamps.sent(stamp_us)
             return True, ""
         return False, "link down: send failed"
-
-    def _unique_stamp_us(self, stamp_s: float) -> int:
-        """``time_usec`` for a stamp, in a later millisecond than the last sent target's (see send_target). Stamps
-        are pose times, which only grow, or capture times, a little older; so the push is a millisecond or a few."""
-        stamp_us = int(stamp_s * 1e6)
-        if self._last_stamp_ms is not None and stamp_us // 1000 <= self._last_stamp_ms:
-            stamp_us = (self._last_stamp_ms + 1) * 1000 + stamp_us % 1000
-        return stamp_us
 
     def send_status(self, text: str, severity: int = 6) -> bool:
         """STATUSTEXT (severity 6 = INFO). Longer than 50 characters, it goes as MAVLink 2 chunks of one ``id``, up
         to 199 characters (io.status_text); a receiver that does not join chunks shows the first 50 first, so put
         the number first. True when every chunk was sent; stops at the first that was not."""
-        if self._mavutil is None:
+        if self._status is None or not self._status.send(text, severity):
             return False
-        chunks = chunk_status(text)
-        make = self._mavutil.mavlink.MAVLink_statustext_message
-        # One text at a time (the fusion thread, the main loop and the link thread all send them): a ground station
-        # joins one chunked text per sender and gives it up when a message with another id comes between.
-        with self._status_lock:
-            text_id = 0
-            if len(chunks) > 1:
-                self._status_id = text_id = next_status_id(self._status_id)
-            for seq, part in chunks:
-                if not self._send(make(severity, part, text_id, seq)):
-                    return False
         self.counts.add("statustext")
         return True
 
@@ -427,6 +398,3 @@ class MavlinkLink:
         if feed_telemetry(self.telemetry, msg, arrival, self._mavutil.mavlink):
             self._streams.arrived(kind, arrival)
 
-
-def _finite(value: float) -> float:
-    return float(value) if math.isfinite(value) else 0.0

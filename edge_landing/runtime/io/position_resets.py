@@ -1,4 +1,7 @@
-"""A small move of the autopilot's local frame told from flight by the samples' own velocity (``telemetry.py``).
+"""Moves of the autopilot's frame told from flight (``telemetry.py``): a reboot, a position or heading that changed
+faster than the vehicle can fly or yaw, and a small move told by the samples' own velocity.
+
+:class:`FrameMoves` judges each new sample against the newest kept one; the buffer empties what it names.
 
 An estimator's position and velocity are one state: between two LOCAL_POSITION_NED samples the position moves as
 the velocities say, to centimetres. An EKF lane switch or a GPS glitch's recovery moves the position alone, by a
@@ -11,11 +14,12 @@ few tenths of a second when a faster sample comes), which at 10 m/s is a metre.
 A source whose velocities do not describe its positions (zeros from a partial MAVLink implementation) would show
 a "reset" on every step and start fusion over for good: after ``distrust_after`` of them within ``distrust_s``
 the velocities are no longer used (said once), and only the speed rule is left, until the autopilot reboots or the
-buffer is told to forget (a new VelocityCheck). Pure numpy.
+buffer is told to forget (a new VelocityCheck). Pure numpy; what it finds is logged.
 """
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from typing import Deque, Optional, Tuple
 
@@ -23,8 +27,10 @@ import numpy as np
 
 from edge_landing.runtime.io.telemetry_config import TelemetryConfig
 
-__all__ = ["VelocityCheck"]
+__all__ = ["FrameMoves", "VelocityCheck", "ALL_SERIES", "THIS_SERIES"]
 log = logging.getLogger(__name__)
+ALL_SERIES, THIS_SERIES = "all", "this"          # what a frame move empties
+_STARTS_OVER = "earlier samples, NED evidence and the committed spot are dropped"
 
 
 class VelocityCheck:
@@ -64,3 +70,52 @@ class VelocityCheck:
             log.warning("the local position's velocity does not describe its positions (%d resets in %.0f s): "
                         "resets under %g m are no longer detected", len(self._resets), t_s - self._resets[0],
                         c.min_jump_m)
+
+
+class FrameMoves:
+    """Whether a sample shows that the autopilot's frame moved since the newest sample of its kind."""
+
+    def __init__(self, config: TelemetryConfig):
+        self.config = config
+        self.velocity = VelocityCheck(config)
+        self._reboots = 0
+
+    def forget(self) -> None:
+        """A new autopilot, or the same one told to start over: its velocities are judged afresh."""
+        self.velocity = VelocityCheck(self.config)
+
+    def check(self, reboots: int, kind: str, last: Optional[Tuple[float, np.ndarray]], t_s: float, value: np.ndarray,
+              velocity: Optional[np.ndarray] = None, remote_s: Optional[float] = None) -> Tuple[str, str]:
+        """(what to empty: ALL_SERIES, THIS_SERIES or "", the counted reason). ``reboots``: the clock's count of
+        restarts so far; ``kind``: "position", "attitude" or another series; ``last``: (local time, value) of its
+        newest sample, None without one; ``velocity``, ``remote_s``: as VelocityCheck.off_m."""
+        c = self.config
+        if reboots != self._reboots:
+            # A rebooted autopilot sets its local origin again: positions from before may name other places. Its
+            # estimator started over too, and samples from before were timed with the old clock's offset: none is
+            # interpolated with, or matched in place of, the new autopilot's.
+            self._reboots = reboots
+            self.forget()
+            log.warning("the autopilot's clock restarted (a reboot): " + _STARTS_OVER)
+            return ALL_SERIES, "autopilot rebooted (its clock restarted): every earlier sample dropped"
+        if kind not in ("position", "attitude") or last is None or t_s <= last[0]:
+            return "", ""
+        dt = t_s - last[0]
+        if kind == "position":
+            moved = float(np.linalg.norm(value - last[1]))
+            off = self.velocity.off_m(last[0], last[1], t_s, value, velocity, remote_s)
+            flown = moved <= max(c.min_jump_m, c.max_speed_mps * dt)
+            if flown and off is None:
+                return "", ""
+            if flown:
+                self.velocity.reset_seen(t_s)
+                log.warning("local position moved %.1f m from where its velocity carried it in %.2f s (an EKF "
+                            "reset): " + _STARTS_OVER, off, dt)
+            else:
+                log.warning("local position jumped %.1f m in %.2f s (EKF reset or glitch): " + _STARTS_OVER, moved, dt)
+            return THIS_SERIES, "position jumped (the autopilot's frame moved): earlier positions dropped"
+        turned = abs(math.remainder(float(value[2] - last[1][2]), 2.0 * math.pi))
+        if turned <= max(c.min_yaw_jump_rad, c.max_yaw_rate_rad_s * dt):
+            return "", ""
+        log.warning("heading jumped %.0f° in %.2f s (an EKF yaw reset): " + _STARTS_OVER, math.degrees(turned), dt)
+        return THIS_SERIES, "heading jumped (a yaw reset): earlier attitudes dropped"

@@ -34,6 +34,21 @@ class TimeSeries:
         self.rates: Deque[Optional[np.ndarray]] = deque(maxlen=max_samples)   # per unit time; None: not known
         self.last_arrival_s = -math.inf
 
+    def rate_agrees(self, t_s: float, value: np.ndarray, rate: np.ndarray, max_gap_s: float, tolerance: float,
+                    tolerance_share: float, angles: bool) -> Optional[bool]:
+        """Whether ``rate`` (per second) agrees with how the value changed since the newest sample: the mean of both
+        samples' rates against the difference quotient, within ``tolerance`` + ``tolerance_share`` × the larger of
+        the two. None when it cannot be told (no sample before, or the newest more than ``max_gap_s`` before).
+        ``angles``: the values are angles (differences wrap)."""
+        if not self.times or not 0 < t_s - self.times[-1] <= max_gap_s:
+            return None
+        delta = value - self.values[-1]
+        seen = (wrap_angles(delta) if angles else delta) / (t_s - self.times[-1])
+        last = self.rates[-1]
+        said = rate if last is None else 0.5 * (rate + last)
+        allowed = tolerance + tolerance_share * np.maximum(np.abs(seen), np.abs(said))
+        return bool(np.all(np.abs(seen - said) <= allowed))
+
     def add(self, t_s: float, value: np.ndarray, arrival_s: float, rate: Optional[np.ndarray] = None) -> bool:
         """False (not kept) for a sample no later than the newest: out of order, duplicated, or a frozen clock
         (new values under an old time would be matched to frames as if measured then). ``rate``: the value's

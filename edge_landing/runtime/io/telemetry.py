@@ -47,13 +47,12 @@ from edge_landing.runtime.core.camera import Attitude
 from edge_landing.runtime.core.messages import TelemetryMatch, VehicleState
 from edge_landing.runtime.io.clock_offset import ClockOffset
 from edge_landing.runtime.io.gimbal import GimbalSeries
-from edge_landing.runtime.io.position_resets import VelocityCheck
-from edge_landing.runtime.io.series import TimeSeries, wrap_angles
+from edge_landing.runtime.io.position_resets import ALL_SERIES, THIS_SERIES, FrameMoves
+from edge_landing.runtime.io.series import TimeSeries
 from edge_landing.runtime.io.telemetry_config import TelemetryConfig
 
 __all__ = ["ClockOffset", "TelemetryBuffer", "TelemetryConfig", "TelemetryMatch", "RANGEFINDER_DOWN"]
 log = logging.getLogger(__name__)
-_STARTS_OVER = "earlier samples, NED evidence and the committed spot are dropped"
 RANGEFINDER_DOWN = 25  # MAV_SENSOR_ROTATION_PITCH_270
 # Estimator flags, the same bits in ArduPilot's EKF_STATUS_REPORT and PX4's ESTIMATOR_STATUS.
 ESTIMATOR_ATTITUDE, ESTIMATOR_POS_HORIZ_REL, ESTIMATOR_CONST_POS_MODE = 1, 8, 128
@@ -78,9 +77,8 @@ class TelemetryBuffer:
         self._rates_refused: Counter[str] = Counter()          # samples whose rate matching does not use
         self.samples = 0
         self._position_epoch = 0
-        self._reboots = 0
         self._estimator: Optional[Tuple[float, int, bool]] = None   # (arrival, flags, GPS glitch) of the newest
-        self._velocity = VelocityCheck(config)
+        self._moves = FrameMoves(config)                      # reboots, jumps and resets (position_resets.py)
         self._said_disagree = False
 
     def _all_series(self) -> Tuple[TimeSeries, ...]:
@@ -139,7 +137,7 @@ class TelemetryBuffer:
                 self._rejected["sample not newer than the last one (out of order, repeated or a frozen clock)"] += 1
                 return False
             if series is self._position:
-                self._velocity.kept(t, velocity, remote_s)
+                self._moves.velocity.kept(t, velocity, remote_s)
             self.samples += 1
             return True
 
@@ -150,19 +148,15 @@ class TelemetryBuffer:
         (or one more than twice the matching window before, or a position velocity the reset check distrusts):
         None, the sample is held as it is."""
         c = self.config
-        if rate is None or not series.times or not 0 < t_s - series.times[-1] <= 2 * c.window_s:
-            return None
         angles = series is self._attitude
-        if not angles and not self._velocity.trusted:
+        if rate is None or (not angles and not self._moves.velocity.trusted):
             return None
-        dt = t_s - series.times[-1]
-        delta = value - series.values[-1]
-        seen = (wrap_angles(delta) if angles else delta) / dt
-        last = series.rates[-1]
-        said = rate if last is None else 0.5 * (rate + last)
-        tolerance = c.rate_tolerance_rad_s if angles else c.rate_tolerance_mps
-        allowed = tolerance + c.rate_tolerance_share * np.maximum(np.abs(seen), np.abs(said))
-        if bool(np.all(np.abs(seen - said) <= allowed)):
+        agrees = series.rate_agrees(t_s, value, rate, 2 * c.window_s,
+                                    c.rate_tolerance_rad_s if angles else c.rate_tolerance_mps,
+                                    c.rate_tolerance_share, angles)
+        if agrees is None:
+            return None
+        if agrees:
             return rate
         name = "attitude rates" if angles else "position velocities"
         if name not in self._rates_refused:
@@ -181,37 +175,10 @@ class TelemetryBuffer:
         """The series to empty and the counted reason when this sample shows that the autopilot's frame moved
         since the newest sample of ``series`` (a reboot, a position or a heading faster than flight), else
         ((), "")."""
-        c = self.config
-        if self._clock.reboots != self._reboots:
-            # A rebooted autopilot sets its local origin again: positions from before may name other places. Its
-            # estimator started over too, and samples from before were timed with the old clock's offset: none is
-            # interpolated with, or matched in place of, the new autopilot's.
-            self._reboots = self._clock.reboots
-            self._velocity = VelocityCheck(self.config)   # a new estimator: its velocities are judged afresh
-            log.warning("the autopilot's clock restarted (a reboot): " + _STARTS_OVER)
-            return self._all_series(), \
-                "autopilot rebooted (its clock restarted): every earlier sample dropped"
-        if series not in (self._position, self._attitude) or not series.times or t_s <= series.times[-1]:
-            return (), ""
-        dt = t_s - series.times[-1]
-        if series is self._position:
-            moved = float(np.linalg.norm(value - series.values[-1]))
-            off = self._velocity.off_m(series.times[-1], series.values[-1], t_s, value, velocity, remote_s)
-            flown = moved <= max(c.min_jump_m, c.max_speed_mps * dt)
-            if flown and off is None:
-                return (), ""
-            if flown:
-                self._velocity.reset_seen(t_s)
-                log.warning("local position moved %.1f m from where its velocity carried it in %.2f s (an EKF "
-                            "reset): " + _STARTS_OVER, off, dt)
-            else:
-                log.warning("local position jumped %.1f m in %.2f s (EKF reset or glitch): " + _STARTS_OVER, moved, dt)
-            return (series,), "position jumped (the autopilot's frame moved): earlier positions dropped"
-        turned = abs(math.remainder(float(value[2] - series.values[-1][2]), 2.0 * math.pi))
-        if turned <= max(c.min_yaw_jump_rad, c.max_yaw_rate_rad_s * dt):
-            return (), ""
-        log.warning("heading jumped %.0f° in %.2f s (an EKF yaw reset): " + _STARTS_OVER, math.degrees(turned), dt)
-        return (series,), "heading jumped (a yaw reset): earlier attitudes dropped"
+        kind = "position" if series is self._position else "attitude" if series is self._attitude else ""
+        last = (series.times[-1], series.values[-1]) if series.times else None
+        scope, why = self._moves.check(self._clock.reboots, kind, last, t_s, value, velocity, remote_s)
+        return (self._all_series() if scope == ALL_SERIES else (series,) if scope == THIS_SERIES else ()), why
 
     def add_attitude(self, roll_rad: float, pitch_rad: float, yaw_rad: float, remote_ms: Optional[float] = None,
                      arrival_s: Optional[float] = None, sample_s: Optional[float] = None,
@@ -311,7 +278,7 @@ class TelemetryBuffer:
             for s in self._all_series():
                 s.clear()
             self._clock.reset()
-            self._velocity = VelocityCheck(self.config)
+            self._moves.forget()
             self._position_epoch += 1
 
     def timesync_request(self, now_s: float) -> int:
