@@ -251,7 +251,8 @@ def test_a_stream_that_stops_while_attitude_flows_gives_frames_none_of_its_quant
     early = buf.lookup(t0 + 0.5, now_s=now)
     assert early.state is not None and early.state.position_ned_m is not None and early.state.agl_m == 10.0
     c = buf.config
-    for capture in (t0 + 1.0 + c.window_s + c.max_extrapolation_s + 0.01, now):
+    last_position_s = t0 + (RATE_HZ - 1) * dt
+    for capture in (last_position_s + c.window_s + 0.01, now):   # just past the matching window, and much later
         late = buf.lookup(capture, now_s=now)
         assert late.state is not None, late.reason                 # the attitude is fresh: the frame is usable
         assert late.state.position_ned_m is None and late.state.agl_m is None

@@ -37,9 +37,10 @@ class TimeSeries:
     def rate_agrees(self, t_s: float, value: np.ndarray, rate: np.ndarray, max_gap_s: float, tolerance: float,
                     tolerance_share: float, angles: bool) -> Optional[bool]:
         """Whether ``rate`` (per second) agrees with how the value changed since the newest sample: the mean of both
-        samples' rates against the difference quotient, within ``tolerance`` + ``tolerance_share`` × the larger of
-        the two. None when it cannot be told (no sample before, or the newest more than ``max_gap_s`` before).
-        ``angles``: the values are angles (differences wrap)."""
+        samples' rates (``rate`` alone when the newest has none) against the difference quotient, within
+        ``tolerance`` + ``tolerance_share`` × the larger of the two. None when it cannot be told (no sample before,
+        ``t_s`` not after the newest, or the newest more than ``max_gap_s`` before). ``angles``: the values are
+        angles (differences wrap)."""
         if not self.times or not 0 < t_s - self.times[-1] <= max_gap_s:
             return None
         delta = value - self.values[-1]

@@ -47,7 +47,7 @@ class StatusSender:
 
     def __init__(self, send: Callable[[Any], bool], mavlink: Any):
         self._send, self._make = send, mavlink.MAVLink_statustext_message
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()                        # not the link's: its send function takes that one
         self._last_id = 0                                    # the last chunked text's id
 
     def send(self, text: str, severity: int) -> bool:

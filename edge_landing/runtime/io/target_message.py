@@ -34,8 +34,9 @@ def body_vector(target: Target) -> Tuple[Optional[np.ndarray], str]:
 
 def message_vector(target: Target, body_frd_m: np.ndarray, state: Optional[VehicleState],
                    autopilot: Autopilot) -> Tuple[Optional[np.ndarray], int]:
-    """(x, y, z, MAV_FRAME) for the autopilot: the body vector for ArduPilot, the absolute local NED position for
-    PX4 (None when no telemetry position places it: PX4 has no use for a body vector)."""
+    """(x, y, z as a 3-vector, MAV_FRAME) for the autopilot: the body vector for ArduPilot (BODY_FRD), the absolute
+    local NED position for PX4 (LOCAL_NED; the vector is None when no telemetry position places the target: PX4
+    has no use for a body vector)."""
     if autopilot is Autopilot.PX4:
         return target_ned(target, state), FRAME_LOCAL_NED
     return body_frd_m, FRAME_BODY_FRD
@@ -63,8 +64,9 @@ class TargetStamps:
 
 
 def landing_target_message(mavlink: Any, target: Target, xyz: np.ndarray, frame: int, stamp_us: int) -> Any:
-    """The LANDING_TARGET (pymavlink's ``mavlink`` dialect module): angles and sizes at the same pose as x, y, z,
-    distance the body vector's length, ``position_valid`` 1, type VISION_OTHER."""
+    """The LANDING_TARGET (pymavlink's ``mavlink`` dialect module) with the target's own angles and sizes
+    (core.target_frames sets them with its body vector), x, y, z as given (``message_vector``), distance the body
+    vector's length, ``position_valid`` 1, type VISION_OTHER; non-finite angles or sizes go as 0."""
     distance = float(np.linalg.norm(np.asarray(target.position_body_frd_m, dtype=np.float64)))
     return mavlink.MAVLink_landing_target_message(
         stamp_us, 0, frame, _finite(target.angle_x_rad), _finite(target.angle_y_rad), distance,
