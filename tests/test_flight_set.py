@@ -62,6 +62,15 @@ def test_a_short_set_is_written_reused_and_refused_with_other_settings(tmp_path,
     summary = json.loads((out / "summary.json").read_text())
     assert summary["flights"][0]["lying"]["sent"] == st["sent"]["targets"]
     assert "[1/1] suburban_5150_straight" in first
+    # The weather the sim drew for the flight, as its renderer used it (one draw per flight), in the row and the report.
+    from edge_landing import sim
+    from edge_landing.sim.generate import SimConfig, frame_effects
+    drawn = frame_effects(SimConfig(out=tmp_path, frames=12, style=sim.Style.from_string("suburban"), seed=5150,
+                                    flight=True), 0)
+    weather = summary["flights"][0]["weather"]
+    assert weather == result["weather"] and weather["rain"] == round(drawn.rain, 3)
+    assert weather["noise_sigma"] == round(drawn.noise_sigma, 4) and 0.0 <= weather["noise_sigma"] <= 0.03
+    assert f"sensor noise {drawn.noise_sigma:.3f}" in first
     stamp = path.stat().st_mtime_ns
     assert fs.main(args) == 0                # reused, not flown again
     assert path.stat().st_mtime_ns == stamp and "[1/1]" not in capsys.readouterr().out

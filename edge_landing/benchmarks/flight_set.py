@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
-from edge_landing.benchmarks.lying_model import check_camera_size
+from edge_landing.benchmarks.lying_model import check_camera_size, weather_text
 from edge_landing.cli.common import CliParser, check_choice, check_seed, check_threads, output_folder, run_cli
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.io.sources import SimReader
@@ -118,8 +118,11 @@ def _finished(flight: Flight, cfg: SetConfig) -> Optional[dict[str, Any]]:
 
 
 def flight_row(flight: Flight, result: dict[str, Any]) -> dict[str, Any]:
-    """Per model: frames, sent and safe, the network alone's targets and safe ones."""
+    """Per model: frames, sent and safe, the network alone's targets and safe ones; the flight's weather when the
+    result has it (lying_model.flight_weather)."""
     row: dict[str, Any] = {"flight": flight.name, "frames": int(result["frames"])}
+    if "weather" in result:
+        row["weather"] = result["weather"]
     for model, kinds in result["stats"].items():
         row[model] = {"sent": kinds["sent"]["targets"], "sent_safe": kinds["sent"]["safe"],
                       "network": kinds["network"]["targets"], "network_safe": kinds["network"]["safe"]}
@@ -158,7 +161,8 @@ def report(rows: Sequence[dict[str, Any]], summary: dict[str, Any]) -> str:
     for r in rows:
         parts = [f"{m} sent {r[m]['sent']}/{r['frames']}, safe {r[m]['sent_safe']} | network alone "
                  f"{r[m]['network']}, safe {r[m]['network_safe']}" for m in SAFE_GOAL if m in r]
-        lines.append(f"{r['flight']:26s} " + "; ".join(parts))
+        weather = f" ({weather_text(r['weather'])})" if "weather" in r else ""
+        lines.append(f"{r['flight']:26s} " + "; ".join(parts) + weather)
     for model, g in summary.items():
         lines.append(f"{model}: {g['sent']} sent on {g['flights']} flights, {g['sent_safe']} safe "
                      f"({_share(g['sent_safe'], g['sent'])}; goal {100 * g['safe_goal']:.0f} %: "

@@ -140,7 +140,7 @@ def _approach(text: str) -> Any:
 def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
     from edge_landing import sim
     from edge_landing.benchmarks.landing_truth import TruthConfig, check_target
-    from edge_landing.sim.generate import SimConfig, render_sample, vehicle_samples
+    from edge_landing.sim.generate import SimConfig, frame_effects, render_sample, vehicle_samples
 
     scfg = SimConfig(out=Path("."), frames=cfg.frames, style=sim.Style.from_string(cfg.style), seed=cfg.seed,
                      flight=True, fps=cfg.fps, width=cfg.width, height=cfg.height,
@@ -211,7 +211,21 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
     if trace is not None:
         trace.close()
     return {"config": asdict(cfg), "frames": cfg.frames, "stats": stats, "recall": recall,
-            "geometry_ms_p50": float(np.median(geo_ms)) if geo_ms else math.nan}
+            "geometry_ms_p50": float(np.median(geo_ms)) if geo_ms else math.nan,
+            "weather": flight_weather(frame_effects(scfg, 0))}
+
+
+def flight_weather(effects: Any) -> dict[str, float]:
+    """What the sim drew for the whole flight and motion geometry feels most (sim.effects; one draw per flight):
+    rain streaks (0-1), sensor noise (fraction of full scale), haze (per metre), motion blur (px)."""
+    return {"rain": round(float(effects.rain), 3), "noise_sigma": round(float(effects.noise_sigma), 4),
+            "haze_per_m": round(float(effects.haze_per_m), 5), "motion_blur_px": round(float(effects.motion_blur_px), 2)}
+
+
+def weather_text(weather: dict[str, float]) -> str:
+    """One line's worth: 'rain 0.85, sensor noise 0.019, haze 0.0012/m, blur 0 px'."""
+    return (f"rain {weather['rain']:.2f}, sensor noise {weather['noise_sigma']:.3f}, haze {weather['haze_per_m']:.4f}/m, "
+            f"blur {weather['motion_blur_px']:g} px")
 
 
 def _trace_row(k: int, n_app: int, n_hov: int, name: str, s: Any, target: Any, fuser: LandingFuser
@@ -248,6 +262,8 @@ def _summary(result: dict[str, Any]) -> str:
                      f"({100 * fa / max(flat, 1):.1f} %), open flat cells (nothing within 1.5 m) marked {fo}/{op} "
                      f"({100 * fo / max(op, 1):.1f} %)")
     lines.append(f"geometry stage p50 {result['geometry_ms_p50']:.2f} ms per frame (inside fusion)")
+    if "weather" in result:
+        lines.append(f"weather drawn for the flight: {weather_text(result['weather'])}")
     return "\n".join(lines)
 
 
