@@ -68,8 +68,8 @@ def test_a_short_set_is_written_reused_and_refused_with_other_settings(tmp_path,
     drawn = frame_effects(SimConfig(out=tmp_path, frames=12, style=sim.Style.from_string("suburban"), seed=5150,
                                     flight=True), 0)
     weather = summary["flights"][0]["weather"]
-    assert weather == result["weather"] and weather["rain"] == round(drawn.rain, 3)
-    assert weather["noise_sigma"] == round(drawn.noise_sigma, 4) and 0.0 <= weather["noise_sigma"] <= 0.03
+    assert weather == result["weather"] == drawn.to_json() and weather["rain"] == round(drawn.rain, 6)
+    assert weather["noise_sigma"] == round(drawn.noise_sigma, 6) and 0.0 <= weather["noise_sigma"] <= 0.03
     assert f"sensor noise {drawn.noise_sigma:.3f}" in first
     stamp = path.stat().st_mtime_ns
     assert fs.main(args) == 0                # reused, not flown again

@@ -119,7 +119,7 @@ def _finished(flight: Flight, cfg: SetConfig) -> Optional[dict[str, Any]]:
 
 def flight_row(flight: Flight, result: dict[str, Any]) -> dict[str, Any]:
     """Per model: frames, sent and safe, the network alone's targets and safe ones; the flight's weather when the
-    result has it (lying_model.flight_weather)."""
+    result has it (sim.effects.Effects.to_json)."""
     row: dict[str, Any] = {"flight": flight.name, "frames": int(result["frames"])}
     if "weather" in result:
         row["weather"] = result["weather"]

@@ -212,18 +212,12 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
         trace.close()
     return {"config": asdict(cfg), "frames": cfg.frames, "stats": stats, "recall": recall,
             "geometry_ms_p50": float(np.median(geo_ms)) if geo_ms else math.nan,
-            "weather": flight_weather(frame_effects(scfg, 0))}
-
-
-def flight_weather(effects: Any) -> dict[str, float]:
-    """What the sim drew for the whole flight and motion geometry feels most (sim.effects; one draw per flight):
-    rain streaks (0-1), sensor noise (fraction of full scale), haze (per metre), motion blur (px)."""
-    return {"rain": round(float(effects.rain), 3), "noise_sigma": round(float(effects.noise_sigma), 4),
-            "haze_per_m": round(float(effects.haze_per_m), 5), "motion_blur_px": round(float(effects.motion_blur_px), 2)}
+            "weather": frame_effects(scfg, 0).to_json()}   # one draw per flight, as scene.json records it
 
 
 def weather_text(weather: dict[str, float]) -> str:
-    """One line's worth: 'rain 0.85, sensor noise 0.019, haze 0.0012/m, blur 0 px'."""
+    """What motion geometry feels most of a flight's weather (sim.effects.Effects.to_json), in one line's worth:
+    'rain 0.85, sensor noise 0.019, haze 0.0012/m, blur 0 px'."""
     return (f"rain {weather['rain']:.2f}, sensor noise {weather['noise_sigma']:.3f}, haze {weather['haze_per_m']:.4f}/m, "
             f"blur {weather['motion_blur_px']:g} px")
 

@@ -21,15 +21,33 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
+from enum import Enum
 from typing import Deque, Optional, Tuple
 
 import numpy as np
 
 from edge_landing.runtime.io.telemetry_config import TelemetryConfig
 
-__all__ = ["FrameMoves", "VelocityCheck", "ALL_SERIES", "THIS_SERIES"]
+__all__ = ["FrameMoves", "Quantity", "Emptied", "VelocityCheck"]
 log = logging.getLogger(__name__)
-ALL_SERIES, THIS_SERIES = "all", "this"          # what a frame move empties
+
+
+class Quantity(Enum):
+    """The telemetry series a sample belongs to, as far as frame moves are concerned."""
+
+    POSITION = "position"
+    ATTITUDE = "attitude"
+    OTHER = "other"          # heights: only a reboot moves them
+
+
+class Emptied(Enum):
+    """What a frame move empties."""
+
+    NOTHING = "nothing"
+    THIS_SERIES = "this series"
+    ALL_SERIES = "every series"
+
+
 _STARTS_OVER = "earlier samples, NED evidence and the committed spot are dropped"
 
 
@@ -84,11 +102,12 @@ class FrameMoves:
         """A new autopilot, or the same one told to start over: its velocities are judged afresh."""
         self.velocity = VelocityCheck(self.config)
 
-    def check(self, reboots: int, kind: str, last: Optional[Tuple[float, np.ndarray]], t_s: float, value: np.ndarray,
-              velocity: Optional[np.ndarray] = None, remote_s: Optional[float] = None) -> Tuple[str, str]:
-        """(what to empty: ALL_SERIES, THIS_SERIES or "", the counted reason). ``reboots``: the clock's count of
-        restarts so far; ``kind``: "position", "attitude" or another series; ``last``: (local time, value) of its
-        newest sample, None without one; ``velocity``, ``remote_s``: as VelocityCheck.off_m."""
+    def check(self, reboots: int, kind: Quantity, last: Optional[Tuple[float, np.ndarray]], t_s: float,
+              value: np.ndarray, velocity: Optional[np.ndarray] = None, remote_s: Optional[float] = None
+              ) -> Tuple[Emptied, str]:
+        """(what to empty, the counted reason, "" when nothing moved). ``reboots``: the clock's count of restarts so
+        far; ``last``: (local time, value) of the series' newest sample, None without one; ``velocity``,
+        ``remote_s``: as VelocityCheck.off_m."""
         c = self.config
         if reboots != self._reboots:
             # A rebooted autopilot sets its local origin again: positions from before may name other places. Its
@@ -97,25 +116,25 @@ class FrameMoves:
             self._reboots = reboots
             self.forget()
             log.warning("the autopilot's clock restarted (a reboot): " + _STARTS_OVER)
-            return ALL_SERIES, "autopilot rebooted (its clock restarted): every earlier sample dropped"
-        if kind not in ("position", "attitude") or last is None or t_s <= last[0]:
-            return "", ""
+            return Emptied.ALL_SERIES, "autopilot rebooted (its clock restarted): every earlier sample dropped"
+        if kind is Quantity.OTHER or last is None or t_s <= last[0]:
+            return Emptied.NOTHING, ""
         dt = t_s - last[0]
-        if kind == "position":
+        if kind is Quantity.POSITION:
             moved = float(np.linalg.norm(value - last[1]))
             off = self.velocity.off_m(last[0], last[1], t_s, value, velocity, remote_s)
             flown = moved <= max(c.min_jump_m, c.max_speed_mps * dt)
             if flown and off is None:
-                return "", ""
+                return Emptied.NOTHING, ""
             if flown:
                 self.velocity.reset_seen(t_s)
                 log.warning("local position moved %.1f m from where its velocity carried it in %.2f s (an EKF "
                             "reset): " + _STARTS_OVER, off, dt)
             else:
                 log.warning("local position jumped %.1f m in %.2f s (EKF reset or glitch): " + _STARTS_OVER, moved, dt)
-            return THIS_SERIES, "position jumped (the autopilot's frame moved): earlier positions dropped"
+            return Emptied.THIS_SERIES, "position jumped (the autopilot's frame moved): earlier positions dropped"
         turned = abs(math.remainder(float(value[2] - last[1][2]), 2.0 * math.pi))
         if turned <= max(c.min_yaw_jump_rad, c.max_yaw_rate_rad_s * dt):
-            return "", ""
+            return Emptied.NOTHING, ""
         log.warning("heading jumped %.0f° in %.2f s (an EKF yaw reset): " + _STARTS_OVER, math.degrees(turned), dt)
-        return THIS_SERIES, "heading jumped (a yaw reset): earlier attitudes dropped"
+        return Emptied.THIS_SERIES, "heading jumped (a yaw reset): earlier attitudes dropped"

@@ -47,7 +47,7 @@ from edge_landing.runtime.core.camera import Attitude
 from edge_landing.runtime.core.messages import TelemetryMatch, VehicleState
 from edge_landing.runtime.io.clock_offset import ClockOffset
 from edge_landing.runtime.io.gimbal import GimbalSeries
-from edge_landing.runtime.io.position_resets import ALL_SERIES, THIS_SERIES, FrameMoves
+from edge_landing.runtime.io.position_resets import Emptied, FrameMoves, Quantity
 from edge_landing.runtime.io.series import TimeSeries
 from edge_landing.runtime.io.telemetry_config import TelemetryConfig
 
@@ -175,10 +175,13 @@ class TelemetryBuffer:
         """The series to empty and the counted reason when this sample shows that the autopilot's frame moved
         since the newest sample of ``series`` (a reboot, a position or a heading faster than flight), else
         ((), "")."""
-        kind = "position" if series is self._position else "attitude" if series is self._attitude else ""
+        kind = Quantity.POSITION if series is self._position else \
+            Quantity.ATTITUDE if series is self._attitude else Quantity.OTHER
         last = (series.times[-1], series.values[-1]) if series.times else None
-        scope, why = self._moves.check(self._clock.reboots, kind, last, t_s, value, velocity, remote_s)
-        return (self._all_series() if scope == ALL_SERIES else (series,) if scope == THIS_SERIES else ()), why
+        emptied, why = self._moves.check(self._clock.reboots, kind, last, t_s, value, velocity, remote_s)
+        if emptied is Emptied.ALL_SERIES:
+            return self._all_series(), why
+        return ((series,) if emptied is Emptied.THIS_SERIES else ()), why
 
     def add_attitude(self, roll_rad: float, pitch_rad: float, yaw_rad: float, remote_ms: Optional[float] = None,
                      arrival_s: Optional[float] = None, sample_s: Optional[float] = None,
