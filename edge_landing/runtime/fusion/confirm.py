@@ -30,12 +30,14 @@ from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, EVIDENCE_IMAGE
 from edge_landing.runtime.fusion.deferred import DeferredRun, Done, StageTiming
 from edge_landing.runtime.fusion.focus import KnownObstacles
 from edge_landing.runtime.fusion.grid import GridView, clearance_from_mask
+from edge_landing.runtime.fusion.grid_view import Window
 from edge_landing.runtime.fusion.image_motion import ImagePose
 from edge_landing.runtime.fusion.landing import Choice
 from edge_landing.runtime.fusion.motion import POSE_IMAGE, POSE_TELEMETRY, CameraPose, MotionStage, ParallaxResult
 from edge_landing.runtime.fusion.motion_grid import GeometryGrid, GeometryView
 from edge_landing.runtime.fusion.mount_check import MountCheck, MountEstimate
 from edge_landing.runtime.fusion.result import ImagePlacement
+from edge_landing.runtime.fusion.verdicts import NetworkVerdicts
 
 if TYPE_CHECKING:
     from edge_landing.runtime.fusion.config import FusionConfig
@@ -75,6 +77,7 @@ class GeometryConfirmation:
                                  config.obstacle_height_m, config.motion.detect_sigmas)
         self.mount_check = MountCheck(config.mount_check, self.motion.k_cv, mount)
         self.mount_estimate: Optional[MountEstimate] = None   # the camera's orientation from the images so far
+        self.verdicts = NetworkVerdicts(config.geometry_memory_s)  # the network's last look at each NED cell
         self.view: Optional[GeometryView] = None
         self.note = ""
         self.ran = False                                      # the last ``run`` ran (or handed over) the stage
@@ -89,6 +92,7 @@ class GeometryConfirmation:
     def reset(self) -> None:
         self._runner.cancel()           # before the stage's state goes: a job in flight still uses it
         self.grid.clear()
+        self.verdicts.clear()
         self.motion.reset()
         self.mount_check.reset()
         self.mount_estimate = None
@@ -216,20 +220,36 @@ class GeometryConfirmation:
         (depth slope, height spread of 0.1 m) are left to geometry there: at 60-90 m range the network's depth
         spread fails on most open ground (measured: a 2 m landable disc on few frames of hazard-rich flights),
         while geometry measured the cell to the obstacle height. A network that objects to nothing (the
-        flat-lying model of benchmarks/lying_model.py) leaves geometry alone, which stayed all safe there."""
+        flat-lying model of benchmarks/lying_model.py) leaves geometry alone, which stayed all safe there.
+        In local NED, a cell the camera no longer sees keeps the network's verdict of its last look for as long
+        as geometry's own memory (fusion.verdicts): the camera looks ahead, geometry clears ground late.
+        Call once per frame, after :meth:`run`: it records this frame's verdicts."""
         if self.view is None:
             return view
-        clear = self.view.clear
+        now, clear = self.view.time_s, self.view.clear
+        hvo = use_hvo and self.config.confirm_on_horizontal
+
+        def allowed_in(win: Window) -> np.ndarray:
+            allowed = view.landable[win]
+            if hvo:
+                with np.errstate(invalid="ignore"):
+                    allowed = allowed | (view.observed_in(win)
+                                         & (view.horizontal_share_in(win) >= self.config.min_horizontal_share))
+            return np.asarray(allowed)
+
+        ned = view.frame == "ned" and self._frame[0] == POSE_TELEMETRY
+        if ned:
+            self.verdicts.update(view, allowed_in, now)
+        else:
+            self.verdicts.clear()
         landable = np.zeros(clear.shape, dtype=bool)
         rows = np.flatnonzero(clear.any(axis=1))
         if rows.size:                  # only geometry-clear cells can be confirmed: the rest stays False
             cols = np.flatnonzero(clear.any(axis=0))
             win = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
-            allowed = view.landable[win]
-            if use_hvo and self.config.confirm_on_horizontal:
-                with np.errstate(invalid="ignore"):
-                    allowed = allowed | (view.observed_in(win)
-                                         & (view.horizontal_share_in(win) >= self.config.min_horizontal_share))
+            allowed = allowed_in(win)
+            if ned:
+                allowed = allowed | self.verdicts.allowed_in(win, now)
             landable[win] = allowed & clear[win]
         return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
 
