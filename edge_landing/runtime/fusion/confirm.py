@@ -248,8 +248,8 @@ class GeometryConfirmation:
             cols = np.flatnonzero(clear.any(axis=0))
             win = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
             allowed = allowed_in(win)
-            if ned:
-                allowed = allowed | self.verdicts.allowed_in(win, now)
+            if ned:            # (where fusion's grid still holds the cell's decayed sums: its level and shares)
+                allowed = allowed | (self.verdicts.allowed_in(win, now) & (view.sums[0][win] > 0))
             landable[win] = allowed & clear[win]
         return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
 
@@ -266,6 +266,18 @@ class GeometryConfirmation:
         if last is not None and last.plane_raised_m > 0:
             out = f"{out}; measured on a surface {last.plane_raised_m:.1f} m above the ground (a roof)"
         return out if not self.note else f"{out}; {self.note}"
+
+    def verdict_note(self, choice: Choice, view: Optional[GridView]) -> str:
+        """For the evidence: when the network no longer sees the chosen spot's cell, how old its verdict is."""
+        geo = self.view
+        cell = None if view is None or geo is None else view.cell_of(choice.north_m, choice.east_m)
+        if cell is None or view is None or geo is None:
+            return ""
+        r, c = cell
+        if view.observed_in((slice(r, r + 1), slice(c, c + 1)))[0, 0]:
+            return ""
+        age = self.verdicts.age_s(cell, geo.time_s)
+        return f"; out of the network's view now (its last look {age:.1f} s ago)" if math.isfinite(age) else ""
 
     def unconfirmed_reason(self, proposal: Choice, view: Optional[GridView], confirmed: Optional[GridView]) -> str:
         """Why the network's spot is not sent: what geometry knows about its cell, and the best confirmed disc.

@@ -282,7 +282,7 @@ class LandingFuser:
             choice = choose_spot(confirmed_view, here, cfg, self._kept)
             if choice is not None:
                 return self._make_target(pred, choice, (attitude, mount), position, hvo_h is not None, timings,
-                                         self._confirm.evidence())
+                                         self._confirm.evidence() + self._confirm.verdict_note(choice, self._view))
         self._kept = None
         if proposal is None:
             best = float(self._view.clearance_m.max())
