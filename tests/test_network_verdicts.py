@@ -37,19 +37,16 @@ def _view(seen_rows: slice, landable_rows: Optional[slice] = None, north0_m: flo
                     0.5)
 
 
-def _allowed(view: GridView):
-    return lambda win: view.landable[win]
-
-
 def test_a_cell_keeps_the_networks_last_verdict_for_the_memory_and_no_longer():
     verdicts = NetworkVerdicts(memory_s=30.0)
-    verdicts.update(_view(slice(20, 40)), _allowed(_view(slice(20, 40))), now_s=0.0)
+    first = _view(slice(20, 40))
+    verdicts.update(first, ALL, first.landable, now_s=0.0)
     later = _view(slice(0, 20))                    # the camera looks elsewhere now
-    verdicts.update(later, _allowed(later), now_s=10.0)
+    verdicts.update(later, ALL, later.landable, now_s=10.0)
     kept = verdicts.allowed_in(ALL, 10.0)
     assert kept[0:20].all() and kept[20:40].all()  # seen now, and seen 10 s ago
     assert verdicts.age_s((30, 5), 10.0) == 10.0
-    verdicts.update(later, _allowed(later), now_s=30.5)
+    verdicts.update(later, ALL, later.landable, now_s=30.5)
     gone = verdicts.allowed_in(ALL, 30.5)
     assert gone[0:20].all() and not gone[20:40].any()   # 30.5 s since the network last saw rows 20-39
 
@@ -57,11 +54,11 @@ def test_a_cell_keeps_the_networks_last_verdict_for_the_memory_and_no_longer():
 def test_an_objection_at_the_last_look_wipes_an_earlier_verdict_at_once():
     verdicts = NetworkVerdicts(memory_s=30.0)
     first = _view(slice(0, 40))
-    verdicts.update(first, _allowed(first), now_s=0.0)
+    verdicts.update(first, ALL, first.landable, now_s=0.0)
     objecting = _view(slice(0, 40), landable_rows=slice(0, 10))   # rows 10-39: not landable any more
-    verdicts.update(objecting, _allowed(objecting), now_s=1.0)
+    verdicts.update(objecting, ALL, objecting.landable, now_s=1.0)
     away = _view(slice(0, 5))
-    verdicts.update(away, _allowed(away), now_s=2.0)
+    verdicts.update(away, ALL, away.landable, now_s=2.0)
     kept = verdicts.allowed_in(ALL, 2.0)
     assert kept[0:10].all() and not kept[10:40].any()
     assert verdicts.age_s((20, 0), 2.0) == float("inf")
@@ -70,13 +67,13 @@ def test_an_objection_at_the_last_look_wipes_an_earlier_verdict_at_once():
 def test_verdicts_stay_on_their_ground_when_the_grid_moves_and_time_going_back_forgets_them():
     verdicts = NetworkVerdicts(memory_s=30.0)
     first = _view(slice(10, 12))                   # ground rows 10-11: north 5.0-6.0 m
-    verdicts.update(first, _allowed(first), now_s=0.0)
+    verdicts.update(first, ALL, first.landable, now_s=0.0)
     moved = _view(slice(0, 0), north0_m=2.0)       # the grid moved 4 cells north, sees nothing
-    verdicts.update(moved, _allowed(moved), now_s=1.0)
+    verdicts.update(moved, ALL, moved.landable, now_s=1.0)
     kept = verdicts.allowed_in(ALL, 1.0)
     assert np.flatnonzero(kept.any(axis=1)).tolist() == [6, 7]   # the same ground: north 5.0-6.0 m
     back = _view(slice(0, 0), north0_m=2.0)
-    verdicts.update(back, _allowed(back), now_s=0.5)             # time went back: nothing older is trusted
+    verdicts.update(back, ALL, back.landable, now_s=0.5)             # time went back: nothing older is trusted
     assert not verdicts.allowed_in(ALL, 0.5).any()
 
 

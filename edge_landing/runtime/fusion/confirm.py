@@ -30,7 +30,6 @@ from edge_landing.runtime.core.messages import EVIDENCE_GEOMETRY, EVIDENCE_IMAGE
 from edge_landing.runtime.fusion.deferred import DeferredRun, Done, StageTiming
 from edge_landing.runtime.fusion.focus import KnownObstacles
 from edge_landing.runtime.fusion.grid import GridView, clearance_from_mask
-from edge_landing.runtime.fusion.grid_view import Window
 from edge_landing.runtime.fusion.image_motion import ImagePose
 from edge_landing.runtime.fusion.landing import Choice
 from edge_landing.runtime.fusion.motion import POSE_IMAGE, POSE_TELEMETRY, CameraPose, MotionStage, ParallaxResult
@@ -227,30 +226,29 @@ class GeometryConfirmation:
         if self.view is None:
             return view
         now, clear = self.view.time_s, self.view.clear
-        hvo = use_hvo and self.config.confirm_on_horizontal
-
-        def allowed_in(win: Window) -> np.ndarray:
-            allowed = view.landable[win]
-            if hvo:
-                with np.errstate(invalid="ignore"):
-                    allowed = allowed | (view.observed_in(win)
-                                         & (view.horizontal_share_in(win) >= self.config.min_horizontal_share))
-            return np.asarray(allowed)
-
         ned = view.frame == "ned" and self._frame[0] == POSE_TELEMETRY
+        # One box for this frame's verdicts (every observed cell) and for confirmation (every clear cell).
+        x, y, w, h = cv2.boundingRect((view.observed | clear if ned else clear).view(np.uint8))
+        landable = np.zeros(clear.shape, dtype=bool)
+        if w == 0:
+            if not ned:
+                self.verdicts.clear()
+            return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
+        win = (slice(y, y + h), slice(x, x + w))
+        allowed = view.landable[win]
+        if use_hvo and self.config.confirm_on_horizontal:
+            # GridView.horizontal_share_in's shares, without its NaN fill (0/0 is NaN anyway, and NaN >= x is
+            # False): a third of its time on a box of most of the grid.
+            with np.errstate(invalid="ignore", divide="ignore"):
+                horizontal = view.sums[3][win] / view.sums[0][win] >= self.config.min_horizontal_share
+            allowed = allowed | (view.observed_in(win) & horizontal)
         if ned:
-            self.verdicts.update(view, allowed_in, now)
+            self.verdicts.update(view, win, allowed, now)
+            # (where fusion's grid still holds the cell's decayed sums: its level and shares)
+            allowed = allowed | (self.verdicts.allowed_in(win, now) & (view.sums[0][win] > 0))
         else:
             self.verdicts.clear()
-        landable = np.zeros(clear.shape, dtype=bool)
-        rows = np.flatnonzero(clear.any(axis=1))
-        if rows.size:                  # only geometry-clear cells can be confirmed: the rest stays False
-            cols = np.flatnonzero(clear.any(axis=0))
-            win = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
-            allowed = allowed_in(win)
-            if ned:            # (where fusion's grid still holds the cell's decayed sums: its level and shares)
-                allowed = allowed | (self.verdicts.allowed_in(win, now) & (view.sums[0][win] > 0))
-            landable[win] = allowed & clear[win]
+        landable[win] = allowed & clear[win]
         return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
 
     def evidence(self) -> str:

@@ -16,7 +16,7 @@ Pure numpy; memory: one grid-sized array.
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
@@ -36,9 +36,9 @@ class NetworkVerdicts:
         self._origin = (math.nan, math.nan)      # north0, east0 of the grid ``_ok_t`` is on
         self._time_s = -math.inf
 
-    def update(self, view: GridView, allowed_in: Callable[[Window], np.ndarray], now_s: float) -> None:
-        """Record this frame's verdicts on every cell ``view`` observes: ``allowed_in(win)`` says where the
-        network does not object on the cells ``win`` (called once, on the box of the observed cells)."""
+    def update(self, view: GridView, win: Window, allowed: np.ndarray, now_s: float) -> None:
+        """Record this frame's verdicts: ``allowed`` (the network does not object) on the cells ``win`` of
+        ``view``, which must hold every cell ``view`` observes (an objection outside it would be missed)."""
         shape = view.landable.shape
         old = self._ok_t
         if old is None or old.shape != shape or now_s < self._time_s:
@@ -46,16 +46,9 @@ class NetworkVerdicts:
         else:
             ok_t = self._moved(old, view)
         self._ok_t, self._origin, self._time_s = ok_t, (view.north0_m, view.east0_m), now_s
-        observed = view.observed
-        rows = np.flatnonzero(observed.any(axis=1))
-        if rows.size == 0:
-            return
-        cols = np.flatnonzero(observed.any(axis=0))
-        win = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
-        seen, allowed = observed[win], allowed_in(win)
-        here = ok_t[win]
-        here[seen & allowed] = now_s
-        here[seen & ~allowed] = -np.inf
+        here, seen = ok_t[win], view.observed_in(win)
+        np.putmask(here, seen, -np.inf)             # (putmask: a fraction of boolean-index assignment's time)
+        np.putmask(here, seen & allowed, now_s)
 
     def _moved(self, old: np.ndarray, view: GridView) -> np.ndarray:
         """``old`` on ``view``'s cells (the grid moves by whole cells; cells new to it: never seen)."""
