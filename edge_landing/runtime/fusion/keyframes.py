@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Deque, Optional
+from typing import Deque, Mapping, MutableMapping, Optional
 
 import cv2
 import numpy as np
@@ -14,7 +14,8 @@ from edge_landing.runtime.fusion.baseline import detectable_heights_m, window_pr
 from edge_landing.runtime.fusion.motion_config import POSE_TELEMETRY, MotionConfig
 from edge_landing.runtime.fusion.parallax import CameraPose
 
-__all__ = ["Keyframe", "ground_window", "pick_reference", "prune_keyframes", "store_keyframe", "warp_window"]
+__all__ = ["Keyframe", "ground_window", "pick_reference", "prune_keyframes", "remember_pair_noise", "store_keyframe",
+           "warp_window"]
 
 
 @dataclass(frozen=True)
@@ -51,20 +52,40 @@ def store_keyframe(ring: Deque[Keyframe], item: Keyframe, config: MotionConfig) 
         ring.popleft()
 
 
+def remember_pair_noise(memory: MutableMapping[float, float], ring: Deque[Keyframe], ref_time_s: float,
+                        noise_px: float, config: MotionConfig) -> None:
+    """Record the flow noise (px, measured across the epipolar lines) of the pair just made with the keyframe at
+    ``ref_time_s``: kept when the pair failed (above ``max_plane_noise_px``), forgotten when it held. Entries
+    of keyframes no longer in ``ring`` are dropped, so the memory never outgrows the ring."""
+    if noise_px > config.max_plane_noise_px:
+        memory[ref_time_s] = noise_px
+    else:
+        memory.pop(ref_time_s, None)
+    kept = {it.time_s for it in ring} | {ref_time_s}
+    for stale in [t for t in memory if t not in kept]:
+        del memory[stale]
+
+
 def pick_reference(ring: Deque[Keyframe], pose: CameraPose, window: tuple[slice, slice], k_cv: np.ndarray,
-                   k_inv: np.ndarray, size_hw: tuple[int, int], config: MotionConfig
+                   k_inv: np.ndarray, size_hw: tuple[int, int], config: MotionConfig,
+                   failed_noise_px: Optional[Mapping[float, float]] = None
                    ) -> tuple[Optional[Keyframe], float, str]:
     """(keyframe, the height it detects, why none) for the current frame at ``pose``: the newest keyframe that
     detects ``enough_detect_m`` with margin, else the most sensitive one.
 
     All stored frames are scored at once at a few probe pixels of the window: the smallest height they could
     detect there (median over the probes the keyframe still sees). Hovering (no baseline) scores inf: no
-    keyframe, no evidence.
+    keyframe, no evidence. The score assumes the flow noise floor (``flow_noise_px``); a keyframe whose last
+    pair failed (``failed_noise_px``: its time -> that pair's noise, remember_pair_noise) is scored with the noise
+    it gave. A keyframe taken above a tall building sees the ground behind the roof's edge, and the longest
+    baseline, best on paper, would otherwise be picked again for every frame of a hover.
     """
     if not ring:
         return None, math.inf, "no earlier frame yet"
     items = list(ring)
     det = detectable_heights_m(pose, [it.pose for it in items], window_probes(window), k_cv, k_inv, size_hw, config)
+    if failed_noise_px:
+        det = det * np.array([max(1.0, failed_noise_px.get(it.time_s, 0.0) / config.flow_noise_px) for it in items])
     if not np.isfinite(det).any():
         return None, math.inf, "no keyframe with a usable baseline overlaps the current view (hovering?)"
     # A longer baseline than needed only adds occlusion and resampling blur.

@@ -35,6 +35,7 @@ from edge_landing.runtime.fusion.keyframes import (
     ground_window,
     pick_reference,
     prune_keyframes,
+    remember_pair_noise,
     store_keyframe,
     warp_window,
 )
@@ -84,6 +85,7 @@ class MotionStage:
             self._undistort = cv2.initUndistortRectifyMap(self.k_cv, np.asarray(i.dist, np.float64), None,
                                                           self.k_cv, (w, h), cv2.CV_16SC2)
         self._history: Deque[Keyframe] = deque()
+        self._failed_noise_px: dict[float, float] = {}   # keyframe time -> its last pair's noise, when it failed
         self._dis = config.dis_preset.create()
         self._dis.setVariationalRefinementIterations(config.dis_refine_iterations)
         self._dis.setFinestScale(config.dis_finest_scale)
@@ -128,6 +130,7 @@ class MotionStage:
 
     def reset(self) -> None:
         self._history.clear()
+        self._failed_noise_px.clear()
         self.last, self.last_reason = None, ""
         self._ground = None
         self._rain.reset()
@@ -190,6 +193,8 @@ class MotionStage:
             if any(s.source == POSE_IMAGE for s in self._history):
                 self._history.clear()      # odometry positions are not in the telemetry's frame
                 self._ground = None
+        if not self._history:
+            self._failed_noise_px.clear()
         raw_agl = pose.agl_m    # the metric scale: the measured height (carried, when refused), not the plane's
         pose = self._plane_pose(pose, time_s)
         result = None
@@ -261,7 +266,7 @@ class MotionStage:
     def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice]) -> tuple[Optional[Keyframe], float]:
         """keyframes.pick_reference on the ring; sets ``last_reason`` when there is none."""
         ref, det, reason = pick_reference(self._history, pose, window, self.k_cv, self._k_inv, self.size_hw,
-                                          self.config)
+                                          self.config, self._failed_noise_px)
         if ref is None:
             self.last_reason = reason
         return ref, det
@@ -324,6 +329,7 @@ class MotionStage:
         spread = cross[matched_ok & tex]
         if spread.size >= 100:
             noise_px = max(noise_px, 1.4826 * float(np.median(spread)) * f)
+        remember_pair_noise(self._failed_noise_px, self._history, ref.time_s, noise_px, cfg)
         explained = matched_ok & (cross * f <= max(cfg.max_cross_parallax_px, 3 * noise_px))
         # NED point of each pixel at its measured height (the plane point where the flow is not trusted). The
         # height may be negative (ground below the plane: the point is farther along its ray than the plane's).
