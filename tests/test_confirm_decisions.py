@@ -39,18 +39,18 @@ def test_the_window_goes_where_a_keyframe_sees_parallax_and_long_baselines_are_n
     stage, pose = _stage_after_a_descent_along_the_line_of_sight(6.0, 8)   # baselines 6 ... 48 m
     spot_a = np.array([40.0, 0.0, 0.0])       # where the vehicle flies to: the epipole, no parallax
     spot_b = np.array([40.0, 25.0, 0.0])      # landable ground off the line of flight
-    window, ref = stage._choose_window(pose, np.stack([spot_a, spot_b]))
+    window, ref = stage._choose_window(pose, np.stack([spot_a, spot_b]), 0.0)
     assert window is not None and ref is not None
     cam = pose.r_nc.T @ (spot_b - pose.position_ned_m)
     u = stage.k_cv[0, 0] * cam[0] / cam[2] + stage.k_cv[0, 2]
     assert window[1].start <= u < window[1].stop, (window, u)          # centred on B, not on A
-    only_a, _ = stage._choose_window(pose, spot_a[None])
+    only_a, _ = stage._choose_window(pose, spot_a[None], 0.0)
     assert only_a is not None and only_a != window                     # not vacuous: A's window is elsewhere
     # The range to the window's ground is about 57-70 m: a keyframe 48 m back (ratio > 0.5) is never paired.
     baseline = float(np.linalg.norm(ref.pose.position_ned_m - pose.position_ned_m))
     assert baseline <= MotionConfig().max_baseline_ratio * 75.0
     far_only, _ = _stage_after_a_descent_along_the_line_of_sight(48.0, 1)
-    _, none = far_only._pick_reference(pose, window)
+    _, none = far_only._pick_reference(pose, window, 0.0)
     assert none == math.inf and "usable baseline" in far_only.last_reason
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Deque, Mapping, MutableMapping, Optional
+from typing import Deque, Mapping, Optional
 
 import cv2
 import numpy as np
@@ -14,7 +14,7 @@ from edge_landing.runtime.fusion.baseline import detectable_heights_m, window_pr
 from edge_landing.runtime.fusion.motion_config import POSE_TELEMETRY, MotionConfig
 from edge_landing.runtime.fusion.parallax import CameraPose
 
-__all__ = ["Keyframe", "ground_window", "pick_reference", "prune_keyframes", "remember_pair_noise", "store_keyframe",
+__all__ = ["Keyframe", "ground_window", "pick_reference", "prune_keyframes", "PairNoise", "store_keyframe",
            "warp_window"]
 
 
@@ -52,18 +52,41 @@ def store_keyframe(ring: Deque[Keyframe], item: Keyframe, config: MotionConfig) 
         ring.popleft()
 
 
-def remember_pair_noise(memory: MutableMapping[float, float], ring: Deque[Keyframe], ref_time_s: float,
-                        noise_px: float, config: MotionConfig) -> None:
-    """Record the flow noise (px, measured across the epipolar lines) of the pair just made with the keyframe at
-    ``ref_time_s``: kept when the pair failed (above ``max_plane_noise_px``), forgotten when it held. Entries
-    of keyframes no longer in ``ring`` are dropped, so the memory never outgrows the ring."""
-    if noise_px > config.max_plane_noise_px:
-        memory[ref_time_s] = noise_px
-    else:
-        memory.pop(ref_time_s, None)
-    kept = {it.time_s for it in ring} | {ref_time_s}
-    for stale in [t for t in memory if t not in kept]:
-        del memory[stale]
+class PairNoise:
+    """What each keyframe's pairs gave: the flow noise (px, measured across the epipolar lines) of its last pair
+    when that pair failed (above ``max_plane_noise_px``), and when a pair last held.
+
+    A failure counts against its keyframe (:meth:`penalised`) only while some pair held within ``history_s``:
+    the keyframe is then the cause (one taken above a tall building sees the ground behind the roof's edge).
+    When every pair fails (heavy rain, a smeared feed) the cause is the conditions, and scoring each keyframe
+    by the noise it gave would walk the choice, pair by pair, to the shortest baselines, which resolve nothing
+    (measured: a rainy urban flight lost most of its targets that way, docs/MEASUREMENTS.md). Entries of
+    keyframes no longer in the ring are dropped, so the memory never outgrows the ring."""
+
+    def __init__(self) -> None:
+        self.failed: dict[float, float] = {}    # keyframe time -> the noise of its last pair, when that failed
+        self.held_s = -math.inf                 # time of the last pair that held
+
+    def clear(self) -> None:
+        self.failed.clear()
+        self.held_s = -math.inf
+
+    def remember(self, ring: Deque[Keyframe], ref_time_s: float, time_s: float, noise_px: float,
+                 config: MotionConfig) -> None:
+        """Record the pair made at ``time_s`` with the keyframe at ``ref_time_s``, whose noise was ``noise_px``."""
+        if noise_px > config.max_plane_noise_px:
+            self.failed[ref_time_s] = noise_px
+        else:
+            self.failed.pop(ref_time_s, None)
+            self.held_s = time_s
+        kept = {it.time_s for it in ring} | {ref_time_s}
+        for stale in [t for t in self.failed if t not in kept]:
+            del self.failed[stale]
+
+    def penalised(self, time_s: float, config: MotionConfig) -> Mapping[float, float]:
+        """The failed keyframes to score by their noise at ``time_s``: none unless a pair held within
+        ``history_s`` before it."""
+        return self.failed if 0.0 <= time_s - self.held_s <= config.history_s else {}
 
 
 def pick_reference(ring: Deque[Keyframe], pose: CameraPose, window: tuple[slice, slice], k_cv: np.ndarray,
@@ -76,9 +99,9 @@ def pick_reference(ring: Deque[Keyframe], pose: CameraPose, window: tuple[slice,
     All stored frames are scored at once at a few probe pixels of the window: the smallest height they could
     detect there (median over the probes the keyframe still sees). Hovering (no baseline) scores inf: no
     keyframe, no evidence. The score assumes the flow noise floor (``flow_noise_px``); a keyframe whose last
-    pair failed (``failed_noise_px``: its time -> that pair's noise, remember_pair_noise) is scored with the noise
-    it gave. A keyframe taken above a tall building sees the ground behind the roof's edge, and the longest
-    baseline, best on paper, would otherwise be picked again for every frame of a hover.
+    pair failed (``failed_noise_px``: its time -> that pair's noise) is scored with the noise
+    it gave (PairNoise.penalised). A keyframe taken above a tall building sees the ground behind the roof's edge,
+    and the longest baseline, best on paper, would otherwise be picked again for every frame of a hover.
     """
     if not ring:
         return None, math.inf, "no earlier frame yet"

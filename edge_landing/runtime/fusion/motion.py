@@ -32,10 +32,10 @@ from edge_landing.runtime.fusion.image_checks import (
 from edge_landing.runtime.fusion.image_motion import ImagePose, plane_prediction_sigma
 from edge_landing.runtime.fusion.keyframes import (
     Keyframe,
+    PairNoise,
     ground_window,
     pick_reference,
     prune_keyframes,
-    remember_pair_noise,
     store_keyframe,
     warp_window,
 )
@@ -85,7 +85,7 @@ class MotionStage:
             self._undistort = cv2.initUndistortRectifyMap(self.k_cv, np.asarray(i.dist, np.float64), None,
                                                           self.k_cv, (w, h), cv2.CV_16SC2)
         self._history: Deque[Keyframe] = deque()
-        self._failed_noise_px: dict[float, float] = {}   # keyframe time -> its last pair's noise, when it failed
+        self._pair_noise = PairNoise()   # keyframes whose last pair failed, and when a pair last held
         self._dis = config.dis_preset.create()
         self._dis.setVariationalRefinementIterations(config.dis_refine_iterations)
         self._dis.setFinestScale(config.dis_finest_scale)
@@ -130,7 +130,7 @@ class MotionStage:
 
     def reset(self) -> None:
         self._history.clear()
-        self._failed_noise_px.clear()
+        self._pair_noise.clear()
         self.last, self.last_reason = None, ""
         self._ground = None
         self._rain.reset()
@@ -194,11 +194,11 @@ class MotionStage:
                 self._history.clear()      # odometry positions are not in the telemetry's frame
                 self._ground = None
         if not self._history:
-            self._failed_noise_px.clear()
+            self._pair_noise.clear()
         raw_agl = pose.agl_m    # the metric scale: the measured height (carried, when refused), not the plane's
         pose = self._plane_pose(pose, time_s)
         result = None
-        window, ref = self._choose_window(pose, focus_ned_m)
+        window, ref = self._choose_window(pose, focus_ned_m, time_s)
         if window is None:
             self.last_reason = f"no ground within {cfg.max_range_m:.0f} m in view"
         elif ref is not None and source == POSE_IMAGE:
@@ -234,7 +234,7 @@ class MotionStage:
         return moved_as_posed(np.ascontiguousarray(grey[rs, cs]), newest.grey[rs, cs], warp_window(newest.grey, hom, window),
                               predicted_motion_px(hom, rs, cs), self.config.checks)
 
-    def _choose_window(self, pose: CameraPose, focus: Optional[np.ndarray]
+    def _choose_window(self, pose: CameraPose, focus: Optional[np.ndarray], time_s: float
                        ) -> tuple[Optional[tuple[slice, slice]], Optional[Keyframe]]:
         """The window and keyframe for this frame: among the candidate spots, the one whose best keyframe detects
         the smallest height (the first unless another is ``focus_preference`` times better). The network's spot
@@ -247,7 +247,7 @@ class MotionStage:
             window = self._window(pose, spot)
             if window is None:
                 continue
-            ref, det = self._pick_reference(pose, window)
+            ref, det = self._pick_reference(pose, window, time_s)
             if best[0] is None:
                 best, reason = (window, ref), self.last_reason
             score = det / self.config.focus_preference if k == 0 else det
@@ -263,10 +263,11 @@ class MotionStage:
             self._scan = (self._scan + 1) % 6
         return window
 
-    def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice]) -> tuple[Optional[Keyframe], float]:
-        """keyframes.pick_reference on the ring; sets ``last_reason`` when there is none."""
+    def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice], time_s: float
+                        ) -> tuple[Optional[Keyframe], float]:
+        """keyframes.pick_reference on the ring for a frame at ``time_s``; sets ``last_reason`` when there is none."""
         ref, det, reason = pick_reference(self._history, pose, window, self.k_cv, self._k_inv, self.size_hw,
-                                          self.config, self._failed_noise_px)
+                                          self.config, self._pair_noise.penalised(time_s, self.config))
         if ref is None:
             self.last_reason = reason
         return ref, det
@@ -329,7 +330,7 @@ class MotionStage:
         spread = cross[matched_ok & tex]
         if spread.size >= 100:
             noise_px = max(noise_px, 1.4826 * float(np.median(spread)) * f)
-        remember_pair_noise(self._failed_noise_px, self._history, ref.time_s, noise_px, cfg)
+        self._pair_noise.remember(self._history, ref.time_s, time_s, noise_px, cfg)
         explained = matched_ok & (cross * f <= max(cfg.max_cross_parallax_px, 3 * noise_px))
         # NED point of each pixel at its measured height (the plane point where the flow is not trusted). The
         # height may be negative (ground below the plane: the point is farther along its ray than the plane's).
