@@ -321,7 +321,8 @@ def test_clearance_is_a_safe_lower_bound_to_the_nearest_bad_cell():
     mask[20, 20] = False                       # one obstacle cell; the mask border is landable here
     clear = clearance_from_mask(mask, cell)
     assert clear[20, 20] == 0.0
-    # 10 cells east: centre-to-centre 5 m, minus half a cell diagonal (the obstacle's nearest corner region).
+    # 10 cells east: centre-to-centre 5 m, minus half a cell diagonal (the obstacle's nearest corner region);
+    # the unknown ground past the mask's edge is 11 cells away.
     assert clear[20, 30] == pytest.approx(10 * cell - cell / math.sqrt(2), abs=1e-4)
     # Every cell centre is at least its clearance away from every point of the obstacle cell.
     rows, cols = np.mgrid[0:41, 0:41]
@@ -338,7 +339,8 @@ def test_clearance_is_the_exact_distance_the_same_on_every_call():
     rng = np.random.default_rng(7)
     mask = rng.random((60, 90)) > 0.02                    # scattered obstacle cells, large open stretches
     mask[0, :] = mask[-1, :] = False
-    bad = np.argwhere(~mask)
+    ring = np.pad(mask, 1, constant_values=False)         # past the mask's edge: unknown, not landable
+    bad = np.argwhere(~ring) - 1
     rows, cols = np.nonzero(mask)
     d2 = ((rows[:, None] - bad[None, :, 0]) ** 2 + (cols[:, None] - bad[None, :, 1]) ** 2).min(axis=1)
     exact = np.zeros(mask.shape, np.float32)
@@ -349,6 +351,25 @@ def test_clearance_is_the_exact_distance_the_same_on_every_call():
     for _ in range(20):
         # Fresh copies at other addresses: nothing about the call may change the answer.
         assert np.array_equal(clearance_from_mask(np.array(mask, copy=True), cell), first)
+
+
+def test_a_cell_at_the_edge_of_the_mask_is_not_clear_of_what_lies_past_it():
+    """Unknown ground past the grid's edge counts as an obstacle: a confirmed view whose landable cells reached
+    the grid's edge once sent a spot 1.8 m from a car just outside the grid (urban 1505, docs/MEASUREMENTS.md)."""
+    from edge_landing.runtime.fusion.grid import clearance_from_mask
+
+    cell = 0.5
+    mask = np.zeros((30, 30), bool)
+    mask[5:25, 0:20] = True                               # open ground up to the west edge
+    clear = clearance_from_mask(mask, cell)
+    west = np.arange(20)
+    # Column c is c + 1 cells from the column past the edge (-1): never farther from the unknown than that.
+    assert np.all(clear[15, west] <= (west + 1) * cell - cell / math.sqrt(2) + 1e-5)
+    assert clear[15, 0] == pytest.approx(cell - cell / math.sqrt(2), abs=1e-5)
+    assert clear[15, 0] < 2.0 and clear[15, 10] > 2.0   # a 2 m disc fits only away from the edge
+    full = clearance_from_mask(np.ones((9, 9), bool), cell)   # all landable: bounded by the edge alone
+    assert full[4, 4] == pytest.approx(5 * cell - cell / math.sqrt(2), abs=1e-5)
+    assert full.max() == full[4, 4]
 
 
 def test_footprint_splatting_leaves_no_holes_in_flat_ground():

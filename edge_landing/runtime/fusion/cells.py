@@ -63,19 +63,24 @@ def clearance_from_mask(landable: np.ndarray, cell_m: float) -> np.ndarray:
 
     The distance transform gives centre-to-centre distance d to the nearest bad cell; the nearest point of
     that cell can be up to half a cell diagonal closer, so d - cell/√2 is a safe lower bound.
-    Only the bounding box of the landable cells plus a one-cell ring is transformed: every cell outside it
-    is non-landable and never nearer than the ring cell between (clamping a cell onto the box shortens
-    each coordinate difference), so the result is the same as the whole mask's, for a fraction of the cost
-    (the grid is 200×200 cells; the landable part is usually a small share of it).
+    Cells beyond the mask are unknown ground and count as non-landable: a cell at the mask's edge is never
+    judged clear of what lies past it (OpenCV's transform ignores the image border, and a confirmed view whose
+    landable cells reached the grid's edge put a spot 1.8 m from a car just outside the grid: docs/MEASUREMENTS.md).
+    Only the bounding box of the landable cells plus a one-cell non-landable ring is transformed: every cell
+    outside it is non-landable (or beyond the mask) and never nearer than the ring cell between (clamping a cell
+    onto the box shortens each coordinate difference), so the result is the same as the whole mask's, for a
+    fraction of the cost (the grid is 200×200 cells; the landable part is usually a small share of it).
     """
     out = np.zeros(landable.shape, np.float32)
     rows = np.flatnonzero(landable.any(axis=1))
     if rows.size == 0:
         return out
     cols = np.flatnonzero(landable.any(axis=0))
-    r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, landable.shape[0])
-    c0, c1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, landable.shape[1])
-    out[r0:r1, c0:c1] = _clearance(np.ascontiguousarray(landable[r0:r1, c0:c1]), cell_m)
+    r0, r1 = int(rows[0]), int(rows[-1]) + 1
+    c0, c1 = int(cols[0]), int(cols[-1]) + 1
+    box = np.zeros((r1 - r0 + 2, c1 - c0 + 2), bool)     # the ring stays False, past the mask's edge too
+    box[1:-1, 1:-1] = landable[r0:r1, c0:c1]
+    out[r0:r1, c0:c1] = _clearance(box, cell_m)[1:-1, 1:-1]
     return out
 
 
