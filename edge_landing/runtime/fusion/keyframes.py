@@ -15,7 +15,7 @@ from edge_landing.runtime.fusion.motion_config import POSE_TELEMETRY, MotionConf
 from edge_landing.runtime.fusion.parallax import CameraPose
 
 __all__ = ["Keyframe", "ground_window", "pick_reference", "prune_keyframes", "PairNoise", "store_keyframe",
-           "warp_window"]
+           "WindowGround", "window_ground", "warp_window"]
 
 
 @dataclass(frozen=True)
@@ -52,19 +52,52 @@ def store_keyframe(ring: Deque[Keyframe], item: Keyframe, config: MotionConfig) 
         ring.popleft()
 
 
-class PairNoise:
-    """What each keyframe's pairs gave: the flow noise (px, measured across the epipolar lines) of its last pair
-    when that pair failed (above ``max_plane_noise_px``), and when a pair last held.
+@dataclass(frozen=True)
+class WindowGround:
+    """Where a window looks on the ground plane (local NED, m): the ground point at its centre, and how far its
+    corners' ground points lie from it (``radius_m``, its footprint)."""
 
-    A failure counts against its keyframe (:meth:`penalised`) only while some pair held within ``history_s``:
-    the keyframe is then the cause (one taken above a tall building sees the ground behind the roof's edge).
-    When every pair fails (heavy rain, a smeared feed) the cause is the conditions, and scoring each keyframe
-    by the noise it gave would walk the choice, pair by pair, to the shortest baselines, which resolve nothing.
-    This is a precaution: on the 14 flights measured with and without it, nothing changed (docs/MEASUREMENTS.md).
-    Entries of keyframes no longer in the ring are dropped, so the memory never outgrows the ring."""
+    centre_ne_m: np.ndarray
+    radius_m: float
+
+    def covers(self, point_ne_m: np.ndarray) -> bool:
+        return bool(np.hypot(*(np.asarray(point_ne_m) - self.centre_ne_m)) <= self.radius_m)
+
+
+def window_ground(pose: CameraPose, window: tuple[slice, slice], k_inv: np.ndarray) -> Optional[WindowGround]:
+    """The ground footprint of ``window`` seen from ``pose`` (ground plane ``pose.agl_m`` below the camera); None
+    when its centre's ray does not meet the ground. Corners above the horizon are left out of the radius."""
+    rs, cs = window
+    us = np.array([0.5 * (cs.start + cs.stop), cs.start, cs.stop, cs.start, cs.stop], np.float64)
+    vs = np.array([0.5 * (rs.start + rs.stop), rs.start, rs.start, rs.stop, rs.stop], np.float64)
+    rays = pose.r_nc @ (k_inv @ np.vstack([us, vs, np.ones(5)]))          # NED directions, 3×5
+    down = rays[2]
+    if not down[0] > 0:
+        return None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pts = pose.position_ned_m[:2, None] + rays[:2] * np.where(down > 0, pose.agl_m / down, np.nan)
+    centre = pts[:, 0]
+    spread = np.hypot(pts[0, 1:] - centre[0], pts[1, 1:] - centre[1])
+    return WindowGround(centre, float(np.nanmax(spread)) if np.isfinite(spread).any() else 0.0)
+
+
+class PairNoise:
+    """What each keyframe's pairs gave: the flow noise (px, measured across the epipolar lines) of its pairs that
+    failed (above ``max_plane_noise_px``), each with the ground its window looked at, and when a pair last held.
+
+    A pair fails for the ground it looks at, not for its keyframe as a whole: one taken above a tall building sees
+    the ground behind the roof's edge, and the same keyframe pairs well on open ground elsewhere. So a failure
+    counts against its keyframe (:meth:`penalised`) only for a window whose ground centre lies within the failed
+    window's footprint, and a pair of that keyframe that held there takes the failure back. A failure counts
+    only while some pair held within ``history_s``: when every pair fails (heavy rain, a smeared feed) the
+    cause is the conditions, and scoring each keyframe by the noise it gave would walk the choice, pair by pair,
+    to the shortest baselines, which resolve nothing. Entries of keyframes no longer in the ring are dropped
+    and each keyframe keeps at most ``MAX_PER_KEYFRAME`` failures, so the memory never outgrows the ring."""
+
+    MAX_PER_KEYFRAME = 4
 
     def __init__(self) -> None:
-        self.failed: dict[float, float] = {}    # keyframe time -> the noise of its last pair, when that failed
+        self.failed: dict[float, list[tuple[float, Optional[WindowGround]]]] = {}   # keyframe time -> failures
         self.held_s = -math.inf                 # time of the last pair that held
 
     def clear(self) -> None:
@@ -72,21 +105,34 @@ class PairNoise:
         self.held_s = -math.inf
 
     def remember(self, ring: Deque[Keyframe], ref_time_s: float, time_s: float, noise_px: float,
-                 config: MotionConfig) -> None:
-        """Record the pair made at ``time_s`` with the keyframe at ``ref_time_s``, whose noise was ``noise_px``."""
+                 ground: Optional[WindowGround], config: MotionConfig) -> None:
+        """Record the pair made at ``time_s`` with the keyframe at ``ref_time_s``, whose noise was ``noise_px``,
+        over the window whose ground is ``ground`` (None: not known; such a failure counts for every window)."""
+        here = [] if ground is None else [f for f in self.failed.get(ref_time_s, [])
+                                          if f[1] is None or not f[1].covers(ground.centre_ne_m)]
         if noise_px > config.max_plane_noise_px:
-            self.failed[ref_time_s] = noise_px
+            self.failed[ref_time_s] = (here + [(noise_px, ground)])[-self.MAX_PER_KEYFRAME:]
         else:
-            self.failed.pop(ref_time_s, None)
+            if here:
+                self.failed[ref_time_s] = here
+            else:
+                self.failed.pop(ref_time_s, None)
             self.held_s = time_s
         kept = {it.time_s for it in ring} | {ref_time_s}
         for stale in [t for t in self.failed if t not in kept]:
             del self.failed[stale]
 
-    def penalised(self, time_s: float, config: MotionConfig) -> Mapping[float, float]:
-        """The failed keyframes to score by their noise at ``time_s``: none unless a pair held within
-        ``history_s`` before it."""
-        return self.failed if 0.0 <= time_s - self.held_s <= config.history_s else {}
+    def penalised(self, time_s: float, ground: Optional[WindowGround], config: MotionConfig) -> Mapping[float, float]:
+        """The keyframes to score by their noise for a window over ``ground`` at ``time_s`` (the worst of their
+        failures that covered it): none unless a pair held within ``history_s`` before it."""
+        if not 0.0 <= time_s - self.held_s <= config.history_s:
+            return {}
+        out: dict[float, float] = {}
+        for t, fails in self.failed.items():
+            hits = [n for n, g in fails if g is None or ground is None or g.covers(ground.centre_ne_m)]
+            if hits:
+                out[t] = max(hits)
+        return out
 
 
 def pick_reference(ring: Deque[Keyframe], pose: CameraPose, window: tuple[slice, slice], k_cv: np.ndarray,

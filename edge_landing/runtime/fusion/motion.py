@@ -38,6 +38,7 @@ from edge_landing.runtime.fusion.keyframes import (
     prune_keyframes,
     store_keyframe,
     warp_window,
+    window_ground,
 )
 from edge_landing.runtime.fusion.motion_config import (
     POSE_IMAGE,
@@ -85,7 +86,7 @@ class MotionStage:
             self._undistort = cv2.initUndistortRectifyMap(self.k_cv, np.asarray(i.dist, np.float64), None,
                                                           self.k_cv, (w, h), cv2.CV_16SC2)
         self._history: Deque[Keyframe] = deque()
-        self._pair_noise = PairNoise()   # keyframes whose last pair failed, and when a pair last held
+        self._pair_noise = PairNoise()   # keyframes' failed pairs, with the ground each looked at
         self._dis = config.dis_preset.create()
         self._dis.setVariationalRefinementIterations(config.dis_refine_iterations)
         self._dis.setFinestScale(config.dis_finest_scale)
@@ -266,8 +267,9 @@ class MotionStage:
     def _pick_reference(self, pose: CameraPose, window: tuple[slice, slice], time_s: float
                         ) -> tuple[Optional[Keyframe], float]:
         """keyframes.pick_reference on the ring for a frame at ``time_s``; sets ``last_reason`` when there is none."""
+        failed = self._pair_noise.penalised(time_s, window_ground(pose, window, self._k_inv), self.config)
         ref, det, reason = pick_reference(self._history, pose, window, self.k_cv, self._k_inv, self.size_hw,
-                                          self.config, self._pair_noise.penalised(time_s, self.config))
+                                          self.config, failed)
         if ref is None:
             self.last_reason = reason
         return ref, det
@@ -276,6 +278,7 @@ class MotionStage:
                  window: tuple[slice, slice], image_pose: Optional[ImagePose] = None) -> Optional[ParallaxResult]:
         cfg = self.config
         rs, cs = window
+        looked_at = window_ground(pose, window, self._k_inv)      # before a roof's plane replaces the ground's
         # A window on a roof is measured against the roof's plane, found from the images (fusion.plane_sweep).
         sweep = sweep_plane(self.k_cv, pose, ref.pose, ref.grey, grey[rs, cs], (rs.start, cs.start), cfg.sweep)
         if sweep.raised:
@@ -330,7 +333,7 @@ class MotionStage:
         spread = cross[matched_ok & tex]
         if spread.size >= 100:
             noise_px = max(noise_px, 1.4826 * float(np.median(spread)) * f)
-        self._pair_noise.remember(self._history, ref.time_s, time_s, noise_px, cfg)
+        self._pair_noise.remember(self._history, ref.time_s, time_s, noise_px, looked_at, cfg)
         explained = matched_ok & (cross * f <= max(cfg.max_cross_parallax_px, 3 * noise_px))
         # NED point of each pixel at its measured height (the plane point where the flow is not trusted). The
         # height may be negative (ground below the plane: the point is farther along its ray than the plane's).
