@@ -127,27 +127,28 @@ def test_a_hover_stops_pairing_with_the_keyframe_that_failed():
     assert stage._pair_noise.failed == {} and stage._pair_noise.held_s == -math.inf
 
 
+def _ring(times: list[float]) -> Deque[Keyframe]:
+    """Keyframes at ``times`` (their images and poses play no part in the memory)."""
+    pose = CameraPose(np.eye(3), np.zeros(3), 40.0)
+    return deque(Keyframe(t, np.zeros((4, 4), np.uint8), pose) for t in times)
+
+
 def test_a_failure_counts_only_for_windows_over_the_ground_it_looked_at():
     """Urban 5150 (docs/MEASUREMENTS.md): keyframes that failed in the approach, looking past a roof's edge 100 m
     away, gave perfect pairs over the hover's ground; blamed everywhere, they left the hover an 8 m baseline."""
     roof, field = WindowGround(np.array([-234.0, 134.0]), 24.0), WindowGround(np.array([-160.0, 62.0]), 18.0)
     noise = PairNoise()
-    noise.remember(deque_of([1.0, 2.0]), 1.0, 5.0, 3.6, roof, CFG)            # failed past the roof's edge
-    noise.remember(deque_of([1.0, 2.0]), 2.0, 5.2, 0.2, roof, CFG)            # another keyframe held there
+    noise.remember(_ring([1.0, 2.0]), 1.0, 5.0, 3.6, roof, CFG)            # failed past the roof's edge
+    noise.remember(_ring([1.0, 2.0]), 2.0, 5.2, 0.2, roof, CFG)            # another keyframe held there
     assert noise.penalised(5.4, roof, CFG) == {1.0: 3.6}
     near = WindowGround(roof.centre_ne_m + [20.0, 0.0], 5.0)                  # inside the failed footprint
     assert noise.penalised(5.4, near, CFG) == {1.0: 3.6}
     assert noise.penalised(5.4, field, CFG) == {}                             # other ground: not blamed
     assert noise.penalised(5.4, None, CFG) == {1.0: 3.6}                      # no ground known: blamed
-    noise.remember(deque_of([1.0, 2.0]), 1.0, 5.6, 0.2, field, CFG)           # held over the field ...
+    noise.remember(_ring([1.0, 2.0]), 1.0, 5.6, 0.2, field, CFG)           # held over the field ...
     assert noise.penalised(5.8, roof, CFG) == {1.0: 3.6}                      # ... the roof's failure stays
-    noise.remember(deque_of([1.0, 2.0]), 1.0, 5.8, 0.2, near, CFG)            # held over that ground: taken back
+    noise.remember(_ring([1.0, 2.0]), 1.0, 5.8, 0.2, near, CFG)            # held over that ground: taken back
     assert noise.failed == {}
-
-
-def deque_of(times: list[float]) -> Deque[Keyframe]:
-    pose = CameraPose(np.eye(3), np.zeros(3), 40.0)
-    return deque(Keyframe(t, np.zeros((4, 4), np.uint8), pose) for t in times)
 
 
 def test_a_window_s_ground_is_where_its_rays_meet_the_plane():
