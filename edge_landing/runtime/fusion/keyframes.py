@@ -12,7 +12,7 @@ import numpy as np
 
 from edge_landing.runtime.fusion.baseline import detectable_heights_m, window_probes
 from edge_landing.runtime.fusion.motion_config import POSE_TELEMETRY, MotionConfig
-from edge_landing.runtime.fusion.parallax import CameraPose
+from edge_landing.runtime.fusion.parallax import CameraPose, ned_points
 
 __all__ = ["Keyframe", "ground_window", "pick_reference", "prune_keyframes", "PairNoise", "store_keyframe",
            "WindowGround", "window_ground", "warp_window"]
@@ -70,13 +70,10 @@ def window_ground(pose: CameraPose, window: tuple[slice, slice], k_inv: np.ndarr
     rs, cs = window
     us = np.array([0.5 * (cs.start + cs.stop), cs.start, cs.stop, cs.start, cs.stop], np.float64)
     vs = np.array([0.5 * (rs.start + rs.stop), rs.start, rs.start, rs.stop, rs.stop], np.float64)
-    rays = pose.r_nc @ (k_inv @ np.vstack([us, vs, np.ones(5)]))          # NED directions, 3×5
-    down = rays[2]
-    if not down[0] > 0:
+    pts, ahead = ned_points(pose, (k_inv @ np.vstack([us, vs, np.ones(5)]))[:2], np.ones(5))   # NaN: no ground
+    if not ahead[0] > 0:
         return None
-    with np.errstate(divide="ignore", invalid="ignore"):
-        pts = pose.position_ned_m[:2, None] + rays[:2] * np.where(down > 0, pose.agl_m / down, np.nan)
-    centre = pts[:, 0]
+    centre = pts[:2, 0]
     spread = np.hypot(pts[0, 1:] - centre[0], pts[1, 1:] - centre[1])
     return WindowGround(centre, float(np.nanmax(spread)) if np.isfinite(spread).any() else 0.0)
 
