@@ -161,18 +161,22 @@ def test_only_geometry_confirmed_targets_are_committed():
 
 def test_rain_streaks_do_not_blind_geometry_or_make_it_unsafe():
     """Heavy rain (new streaks in every frame) over the car park: with the streaks filled in before the flow
-    (fusion/streaks.py) geometry still confirms, every confirmed target is on safe ground, and it confirms
-    more than with the rain left in."""
+    (fusion/streaks.py), and with each frame the median of three aligned on the ground (fusion/burst.py, the
+    default), geometry still confirms, every confirmed target is on safe ground, and each confirms more than
+    with the rain left in."""
     from dataclasses import replace
 
+    from edge_landing.runtime.fusion.burst import BurstConfig
     from edge_landing.runtime.fusion.streaks import StreakConfig
 
     world, path = _car_park()
     truth = TruthConfig(log="", clearance_m=FusionConfig().required_clearance_m)
     rain = replace(EFFECTS, rain=0.9)
     base = FusionConfig()
-    left_in = replace(base, motion=replace(base.motion, streaks=StreakConfig(min_share=0.0)))
-    fusers = {"filled": LandingFuser(base, INTR, MOUNT), "left in": LandingFuser(left_in, INTR, MOUNT)}
+    single = replace(base, motion=replace(base.motion, burst=BurstConfig(frames=1)))
+    left_in = replace(single, motion=replace(single.motion, streaks=StreakConfig(min_share=0.0)))
+    fusers = {"default": LandingFuser(base, INTR, MOUNT), "filled": LandingFuser(single, INTR, MOUNT),
+              "left in": LandingFuser(left_in, INTR, MOUNT)}
     confirmed = {name: 0 for name in fusers}
     rain_seen = []
     for k, t, r, state in _frames(world, path, effects=rain):
@@ -186,10 +190,11 @@ def test_rain_streaks_do_not_blind_geometry_or_make_it_unsafe():
                 ok, why = check_target(world, *target.position_ned_m[:2], truth)
                 assert ok, (name, k, why)
                 last = fuser.motion.last
-                if name == "filled" and last is not None and last.rain_share > 0:
+                if last is not None and last.rain_share > 0:
                     assert "rain streaks filled in" in target.evidence      # the log says so
-    assert np.median(rain_seen) >= StreakConfig().min_share      # the rain was found ...
+    assert np.median(rain_seen) >= StreakConfig().min_share      # the rain was found in single frames ...
     assert confirmed["filled"] > max(5, confirmed["left in"]), confirmed    # ... and filling it in helped
+    assert confirmed["default"] > max(5, confirmed["left in"]), confirmed
 
 
 def _fly_over(world, centre: np.ndarray, agl_m: float, config: MotionConfig = MotionConfig(), frames: int = 12,

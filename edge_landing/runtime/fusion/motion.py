@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from edge_landing.runtime.core.camera import Intrinsics, Mount
+from edge_landing.runtime.fusion.burst import FrameBurst
 from edge_landing.runtime.fusion.chroma import ChromaMaker, chroma_unmatched
 from edge_landing.runtime.fusion.image_checks import (
     along_epipolar_lines,
@@ -100,6 +101,7 @@ class MotionStage:
         self._ground: Optional[tuple[float, float]] = None   # (time, NED down of the local ground last measured)
         self._scan = 0                                         # next window position without a candidate spot
         self._rain = RainFilter(config.streaks)               # rain streaks out of each pair (fusion.streaks)
+        self._burst = FrameBurst(config.burst, self.k_cv)      # three frames aligned on the ground (fusion.burst)
         self.position_ned_m: Optional[np.ndarray] = None  # where the last frame was placed (odometry or NED)
         self._odometry = ImageOdometry(config, self.k_cv)  # places frames without a telemetry position
         self._chroma = ChromaMaker(self.k_cv, i.dist, (h, w)) if config.residual.colour else None   # fusion.chroma
@@ -135,6 +137,7 @@ class MotionStage:
         self.last, self.last_reason = None, ""
         self._ground = None
         self._rain.reset()
+        self._burst.reset()
         self.position_ned_m = None
         self._odometry.reset()
 
@@ -179,7 +182,8 @@ class MotionStage:
         if not (math.isfinite(pose.agl_m) and pose.agl_m >= cfg.min_agl_m):
             self.last_reason = f"height above ground {pose.agl_m} m unusable (need >= {cfg.min_agl_m} m)"
             return None
-        grey = self.grey(image)
+        raw = self.grey(image)
+        grey = self._burst.clean(raw, pose, time_s)     # rain and sensor noise out (fusion.burst)
         chroma = None if self._chroma is None else self._chroma(image)     # half-size Cr, Cb (fusion.chroma)
         prune_keyframes(self._history, time_s, cfg.history_s)
         source = POSE_TELEMETRY if np.all(np.isfinite(pose.position_ned_m)) else POSE_IMAGE
@@ -209,7 +213,7 @@ class MotionStage:
                 result = self._measure(grey, chroma, pose, ref, time_s, window, est)
             else:
                 self.last_reason = est.describe()
-        elif ref is not None and not self._moved_as_posed(grey, pose, window):
+        elif ref is not None and not self._moved_as_posed(raw, pose, window):
             # Not stored either: a frozen image with a new pose would mislead the pairs that follow.
             self.last_reason = ("the images did not move as the vehicle did (a frozen camera feed, or telemetry "
                                 "that does not belong to these frames)")
@@ -230,9 +234,12 @@ class MotionStage:
         frozen feed paired with an older, real keyframe gives a consistent flow read with the wrong pose, and
         its evidence placed metres away."""
         newest = self._history[-1]
+        # The frames as the camera gave them: medians (fusion.burst) of a frozen feed under moving poses differ.
+        before = self._burst.raw_at(newest.time_s)
+        before = newest.grey if before is None else before
         rs, cs = window
         hom = plane_homography(self.k_cv, pose, newest.pose)[0]
-        return moved_as_posed(np.ascontiguousarray(grey[rs, cs]), newest.grey[rs, cs], warp_window(newest.grey, hom, window),
+        return moved_as_posed(np.ascontiguousarray(grey[rs, cs]), before[rs, cs], warp_window(before, hom, window),
                               predicted_motion_px(hom, rs, cs), self.config.checks)
 
     def _choose_window(self, pose: CameraPose, focus: Optional[np.ndarray], time_s: float

@@ -12,6 +12,7 @@ import numpy as np
 
 from edge_landing.runtime.core.choices import ChoiceEnum
 from edge_landing.runtime.core.errors import InputError
+from edge_landing.runtime.fusion.burst import BurstConfig
 from edge_landing.runtime.fusion.image_checks import ImageCheckConfig
 from edge_landing.runtime.fusion.image_motion import ImagePoseConfig
 from edge_landing.runtime.fusion.plane_sweep import SweepConfig
@@ -82,6 +83,7 @@ class MotionConfig:
     overhang_check_m: float = 8.0
     image_pose: ImagePoseConfig = ImagePoseConfig()   # the fallback when telemetry has no position
     streaks: StreakConfig = StreakConfig()            # rain streaks filled in before the flow (fusion.streaks)
+    burst: BurstConfig = BurstConfig()                # each frame the median of three aligned ones (fusion.burst)
     sweep: SweepConfig = SweepConfig()                # the plane a window is measured against (fusion.plane_sweep)
     checks: ImageCheckConfig = ImageCheckConfig()     # texture and moving-as-posed (fusion.image_checks)
     rotation_fit: RotationFitConfig = RotationFitConfig()   # the telemetry's rotation drift (fusion.rotation_fit)
