@@ -99,3 +99,21 @@ def test_median_and_warp_helpers():
 def test_bad_burst_settings_are_refused(kwargs):
     with pytest.raises(InputError):
         BurstConfig(**kwargs)
+
+
+def test_the_rain_the_median_took_out_is_measured_and_dry_noise_is_not_rain():
+    from edge_landing.runtime.fusion.streaks import StreakConfig, removed_share
+
+    poses = [_pose(-1.6), _pose(-0.8), _pose(0.0)]
+    clean = _ground(3)
+    inner = (slice(30, H - 30), slice(30, W - 30))
+    shares = {}
+    # The sim's heaviest sensor noise, 0.028-0.030 of full scale per channel, is about 4 grey levels in grey.
+    for rain, noise in ((0.9, 2.0), (0.0, 4.0)):
+        burst = FrameBurst(BurstConfig(), K)
+        for k, (pose, t) in enumerate(zip(poses, (0.0, 0.2, 0.4))):
+            frame, _ = _camera(_seen_from(clean, poses[-1], pose), seed=10 + k, noise=noise, rain=rain)
+            out = burst.clean(frame, pose, t)
+        shares[rain] = removed_share(np.ascontiguousarray(frame[inner]), np.ascontiguousarray(out[inner]), StreakConfig())
+    assert shares[0.9] >= StreakConfig().min_share, shares      # heavy rain: found although the median took it out
+    assert shares[0.0] < 0.5 * StreakConfig().min_share, shares    # a noisy sensor in dry air: not rain

@@ -191,7 +191,7 @@ def test_rain_streaks_do_not_blind_geometry_or_make_it_unsafe():
                 assert ok, (name, k, why)
                 last = fuser.motion.last
                 if last is not None and last.rain_share > 0:
-                    assert "rain streaks filled in" in target.evidence      # the log says so
+                    assert "rain streaks taken out" in target.evidence      # the log says so
     assert np.median(rain_seen) >= StreakConfig().min_share      # the rain was found in single frames ...
     assert confirmed["filled"] > max(5, confirmed["left in"]), confirmed    # ... and filling it in helped
     assert confirmed["default"] > max(5, confirmed["left in"]), confirmed

@@ -260,7 +260,7 @@ class GeometryConfirmation:
             out = f"{out}; {EVIDENCE_IMAGE_POSE}{sigma}"
         last = None if stage is None else stage.result
         if last is not None and last.rain_share > 0:
-            out = f"{out}; rain streaks filled in ({100 * last.rain_share:.0f} % of the window)"
+            out = f"{out}; rain streaks taken out ({100 * last.rain_share:.0f} % of the window)"
         if last is not None and last.plane_raised_m > 0:
             out = f"{out}; measured on a surface {last.plane_raised_m:.1f} m above the ground (a roof)"
         return out if not self.note else f"{out}; {self.note}"

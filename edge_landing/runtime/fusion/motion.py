@@ -62,7 +62,7 @@ from edge_landing.runtime.fusion.parallax import (
 from edge_landing.runtime.fusion.plane_sweep import sweep_plane
 from edge_landing.runtime.fusion.residual import ray_footprints, unmatched_pixels
 from edge_landing.runtime.fusion.rotation_fit import drift_beyond_an_ekf, pair_rotation_error, rotation_flow
-from edge_landing.runtime.fusion.streaks import RainFilter
+from edge_landing.runtime.fusion.streaks import RainFilter, removed_share
 
 __all__ = ["POSE_IMAGE", "POSE_TELEMETRY", "CameraPose", "DisPreset", "MotionConfig", "MotionStage", "ParallaxResult",
            "parallax_height", "plane_homography"]
@@ -183,7 +183,8 @@ class MotionStage:
             self.last_reason = f"height above ground {pose.agl_m} m unusable (need >= {cfg.min_agl_m} m)"
             return None
         raw = self.grey(image)
-        grey = self._burst.clean(raw, pose, time_s)     # rain and sensor noise out (fusion.burst)
+        # Rain and sensor noise out (fusion.burst), aligned on the ground the pairs are measured against.
+        grey = self._burst.clean(raw, self._plane_pose(pose, time_s), time_s)
         chroma = None if self._chroma is None else self._chroma(image)     # half-size Cr, Cb (fusion.chroma)
         prune_keyframes(self._history, time_s, cfg.history_s)
         source = POSE_TELEMETRY if np.all(np.isfinite(pose.position_ned_m)) else POSE_IMAGE
@@ -210,7 +211,7 @@ class MotionStage:
             located, est = self._odometry.locate(grey, replace(pose, agl_m=raw_agl), ref)   # the pair, directly
             pose = replace(pose, position_ned_m=located.position_ned_m)
             if est.ok:
-                result = self._measure(grey, chroma, pose, ref, time_s, window, est)
+                result = self._measure(grey, chroma, pose, ref, time_s, window, est, raw)
             else:
                 self.last_reason = est.describe()
         elif ref is not None and not self._moved_as_posed(raw, pose, window):
@@ -219,7 +220,7 @@ class MotionStage:
                                 "that does not belong to these frames)")
             return None
         elif ref is not None:
-            result = self._measure(grey, chroma, pose, ref, time_s, window)
+            result = self._measure(grey, chroma, pose, ref, time_s, window, raw=raw)
         self.position_ned_m = pose.position_ned_m.copy()
         # An anchored image position is in the telemetry's frame: a position dropout, not a new frame.
         store_keyframe(self._history, Keyframe(time_s, grey, pose, POSE_TELEMETRY if self.anchored else source,
@@ -282,7 +283,10 @@ class MotionStage:
         return ref, det
 
     def _measure(self, grey: np.ndarray, chroma: Optional[np.ndarray], pose: CameraPose, ref: Keyframe, time_s: float,
-                 window: tuple[slice, slice], image_pose: Optional[ImagePose] = None) -> Optional[ParallaxResult]:
+                 window: tuple[slice, slice], image_pose: Optional[ImagePose] = None,
+                 raw: Optional[np.ndarray] = None) -> Optional[ParallaxResult]:
+        """One pair's evidence on ``window``. ``raw``: this frame as the camera gave it, when ``grey`` is the median of
+        three (fusion.burst): the rain the median took out counts as rain found."""
         cfg = self.config
         rs, cs = window
         looked_at = window_ground(pose, window, self._k_inv)      # before a roof's plane replaces the ground's
@@ -299,7 +303,12 @@ class MotionStage:
             self.last_reason = (f"too little texture to measure ({100 * tex.mean():.0f} % of the window): a blank, "
                                 f"dark or saturated image")
             return None
+        cleaned = cur
         cur, wrp, rain = self._rain.apply(cur, wrp, time_s)
+        if rain == 0.0 and raw is not None and raw is not grey:
+            # The median took the streaks out before the pair saw them: still a rainy pair (fusion.residual's
+            # check is off in rain: the remnants of streaks are unmatched in every pair).
+            rain = self._rain.note(removed_share(np.ascontiguousarray(raw[rs, cs]), cleaned, cfg.streaks), time_s)
         if rain > 0:   # streaks count as texture and as noise alike: the check is made again without them
             beyond_noise = texture_masks(cur, cfg.checks)[1]
         flow = np.asarray(self._dis.calc(cur, wrp, None))  # type: ignore[call-overload]

@@ -79,6 +79,15 @@ def suppress_streaks(cur: np.ndarray, ref: np.ndarray, config: StreakConfig, rai
     return _fill(cur, rain_cur, top_cur), _fill(ref, rain_ref, top_ref), share
 
 
+def removed_share(raw: np.ndarray, cleaned: np.ndarray, config: StreakConfig) -> float:
+    """Share of ``raw`` (uint8 H×W) that is a thin bright feature with none within ``persist_px`` in ``cleaned``, the
+    same view with rain taken out (fusion.burst's median of three aligned frames): the rain that was taken out."""
+    m_raw = streak_mask(raw, config)[0]
+    m_clean = streak_mask(cleaned, config)[0]
+    near = np.ones((2 * config.persist_px + 1, 2 * config.persist_px + 1), np.uint8)
+    return cv2.countNonZero(m_raw & (1 - cv2.dilate(m_clean, near))) / float(raw.size)
+
+
 def fills(share: float, config: StreakConfig, raining: bool) -> bool:
     """Whether a pair with this rain ``share`` is filled in (half the threshold while ``raining``)."""
     return config.min_share > 0 and share >= (0.5 if raining else 1.0) * config.min_share
@@ -100,6 +109,15 @@ class RainFilter:
 
     def reset(self) -> None:
         self.found_s = -math.inf
+
+    def note(self, share: float, time_s: float) -> float:
+        """Rain found another way (``share`` of the window; fusion.burst's medians take it out before the pair
+        is filled in): remembered as a pair that found it would be; returns ``share`` when it counts as rain."""
+        cfg = self.config
+        raining = 0.0 <= time_s - self.found_s <= cfg.hold_s
+        if fills(share, cfg, False):
+            self.found_s = time_s
+        return share if fills(share, cfg, raining) else 0.0
 
     def apply(self, cur: np.ndarray, ref: np.ndarray, time_s: float) -> tuple[np.ndarray, np.ndarray, float]:
         """(cur, ref, share of the window filled in as rain: 0 when nothing was)."""
