@@ -102,7 +102,7 @@ def test_bad_burst_settings_are_refused(kwargs):
 
 
 def test_the_rain_the_median_took_out_is_measured_and_dry_noise_is_not_rain():
-    from edge_landing.runtime.fusion.streaks import StreakConfig, removed_share
+    from edge_landing.runtime.fusion.streaks import RainFilter, StreakConfig, removed_share
 
     poses = [_pose(-1.6), _pose(-0.8), _pose(0.0)]
     clean = _ground(3)
@@ -114,6 +114,11 @@ def test_the_rain_the_median_took_out_is_measured_and_dry_noise_is_not_rain():
         for k, (pose, t) in enumerate(zip(poses, (0.0, 0.2, 0.4))):
             frame, _ = _camera(_seen_from(clean, poses[-1], pose), seed=10 + k, noise=noise, rain=rain)
             out = burst.clean(frame, pose, t)
-        shares[rain] = removed_share(np.ascontiguousarray(frame[inner]), np.ascontiguousarray(out[inner]), StreakConfig())
+        raw_cur, cur = np.ascontiguousarray(frame[inner]), np.ascontiguousarray(out[inner])
+        shares[rain] = removed_share(raw_cur, cur, StreakConfig())
+        # The pair itself (two medians) shows no rain to fill in; the rain filter still reports what was taken out.
+        found = RainFilter(StreakConfig()).apply(cur, cur, 0.4, raw_cur)[2]
+        assert found == (shares[rain] if shares[rain] >= StreakConfig().min_share else 0.0)
+        assert RainFilter(StreakConfig()).apply(cur, cur, 0.4)[2] == 0.0
     assert shares[0.9] >= StreakConfig().min_share, shares      # heavy rain: found although the median took it out
     assert shares[0.0] < 0.5 * StreakConfig().min_share, shares    # a noisy sensor in dry air: not rain

@@ -62,7 +62,7 @@ from edge_landing.runtime.fusion.parallax import (
 from edge_landing.runtime.fusion.plane_sweep import sweep_plane
 from edge_landing.runtime.fusion.residual import ray_footprints, unmatched_pixels
 from edge_landing.runtime.fusion.rotation_fit import drift_beyond_an_ekf, pair_rotation_error, rotation_flow
-from edge_landing.runtime.fusion.streaks import RainFilter, removed_share
+from edge_landing.runtime.fusion.streaks import RainFilter
 
 __all__ = ["POSE_IMAGE", "POSE_TELEMETRY", "CameraPose", "DisPreset", "MotionConfig", "MotionStage", "ParallaxResult",
            "parallax_height", "plane_homography"]
@@ -303,12 +303,8 @@ class MotionStage:
             self.last_reason = (f"too little texture to measure ({100 * tex.mean():.0f} % of the window): a blank, "
                                 f"dark or saturated image")
             return None
-        cleaned = cur
-        cur, wrp, rain = self._rain.apply(cur, wrp, time_s)
-        if rain == 0.0 and raw is not None and raw is not grey:
-            # The median took the streaks out before the pair saw them: still a rainy pair (fusion.residual's
-            # check is off in rain: the remnants of streaks are unmatched in every pair).
-            rain = self._rain.note(removed_share(np.ascontiguousarray(raw[rs, cs]), cleaned, cfg.streaks), time_s)
+        raw_cur = None if raw is None or raw is grey else np.ascontiguousarray(raw[rs, cs])
+        cur, wrp, rain = self._rain.apply(cur, wrp, time_s, raw_cur)
         if rain > 0:   # streaks count as texture and as noise alike: the check is made again without them
             beyond_noise = texture_masks(cur, cfg.checks)[1]
         flow = np.asarray(self._dis.calc(cur, wrp, None))  # type: ignore[call-overload]

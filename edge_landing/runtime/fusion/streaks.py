@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -110,20 +111,27 @@ class RainFilter:
     def reset(self) -> None:
         self.found_s = -math.inf
 
-    def note(self, share: float, time_s: float) -> float:
-        """Rain found another way (``share`` of the window; fusion.burst's medians take it out before the pair
-        is filled in): remembered as a pair that found it would be; returns ``share`` when it counts as rain."""
-        cfg = self.config
-        raining = 0.0 <= time_s - self.found_s <= cfg.hold_s
-        if fills(share, cfg, False):
-            self.found_s = time_s
-        return share if fills(share, cfg, raining) else 0.0
+    def apply(self, cur: np.ndarray, ref: np.ndarray, time_s: float, raw_cur: Optional[np.ndarray] = None
+              ) -> tuple[np.ndarray, np.ndarray, float]:
+        """(cur, ref, share of the window found to be rain: 0 when none was).
 
-    def apply(self, cur: np.ndarray, ref: np.ndarray, time_s: float) -> tuple[np.ndarray, np.ndarray, float]:
-        """(cur, ref, share of the window filled in as rain: 0 when nothing was)."""
+        ``raw_cur``: ``cur`` as the camera gave it, when ``cur`` is fusion.burst's median of three, which takes
+        streaks out before the pair sees them: when the pair finds no rain to fill in, the rain the median took
+        out (:func:`removed_share`) counts as found, so that what is off in rain (fusion.residual) stays off.
+        """
         cfg = self.config
-        raining = 0.0 <= time_s - self.found_s <= cfg.hold_s
-        out_cur, out_ref, share = suppress_streaks(cur, ref, cfg, raining)
-        if fills(share, cfg, False):
+        out_cur, out_ref, share = suppress_streaks(cur, ref, cfg, self._raining(time_s))
+        found = self._found(share, time_s)
+        if found == 0.0 and raw_cur is not None and raw_cur is not cur:
+            found = self._found(removed_share(raw_cur, cur, cfg), time_s)
+        return out_cur, out_ref, found
+
+    def _raining(self, time_s: float) -> bool:
+        return 0.0 <= time_s - self.found_s <= self.config.hold_s
+
+    def _found(self, share: float, time_s: float) -> float:
+        """``share`` when it counts as rain (half the threshold while raining), else 0; remembers when it did."""
+        raining = self._raining(time_s)
+        if fills(share, self.config, False):
             self.found_s = time_s
-        return out_cur, out_ref, share if fills(share, cfg, raining) else 0.0
+        return share if fills(share, self.config, raining) else 0.0
