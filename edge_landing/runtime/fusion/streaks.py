@@ -71,9 +71,7 @@ def suppress_streaks(cur: np.ndarray, ref: np.ndarray, config: StreakConfig, rai
         return cur, ref, 0.0
     m_cur, top_cur = streak_mask(cur, config)
     m_ref, top_ref = streak_mask(ref, config)
-    near = np.ones((2 * config.persist_px + 1, 2 * config.persist_px + 1), np.uint8)
-    rain_cur = m_cur & (1 - cv2.dilate(m_ref, near))
-    rain_ref = m_ref & (1 - cv2.dilate(m_cur, near))
+    rain_cur, rain_ref = _not_in(m_cur, m_ref, config), _not_in(m_ref, m_cur, config)
     share = (cv2.countNonZero(rain_cur) + cv2.countNonZero(rain_ref)) / float(2 * cur.size)
     if not fills(share, config, raining):
         return cur, ref, share
@@ -83,10 +81,14 @@ def suppress_streaks(cur: np.ndarray, ref: np.ndarray, config: StreakConfig, rai
 def removed_share(raw: np.ndarray, cleaned: np.ndarray, config: StreakConfig) -> float:
     """Share of ``raw`` (uint8 H×W) that is a thin bright feature with none within ``persist_px`` in ``cleaned``, the
     same view with rain taken out (fusion.burst's median of three aligned frames): the rain that was taken out."""
-    m_raw = streak_mask(raw, config)[0]
-    m_clean = streak_mask(cleaned, config)[0]
+    return cv2.countNonZero(_not_in(streak_mask(raw, config)[0], streak_mask(cleaned, config)[0], config)) / float(raw.size)
+
+
+def _not_in(mask: np.ndarray, other: np.ndarray, config: StreakConfig) -> np.ndarray:
+    """The pixels of ``mask`` (uint8 0/1) with none of ``other`` within ``persist_px``: features that did not persist."""
     near = np.ones((2 * config.persist_px + 1, 2 * config.persist_px + 1), np.uint8)
-    return cv2.countNonZero(m_raw & (1 - cv2.dilate(m_clean, near))) / float(raw.size)
+    out: np.ndarray = mask & (1 - cv2.dilate(other, near))
+    return out
 
 
 def fills(share: float, config: StreakConfig, raining: bool) -> bool:
@@ -122,7 +124,7 @@ class RainFilter:
         cfg = self.config
         out_cur, out_ref, share = suppress_streaks(cur, ref, cfg, self._raining(time_s))
         found = self._found(share, time_s)
-        if found == 0.0 and raw_cur is not None and raw_cur is not cur:
+        if found == 0.0 and raw_cur is not None and cfg.min_share > 0:
             found = self._found(removed_share(raw_cur, cur, cfg), time_s)
         return out_cur, out_ref, found
 
