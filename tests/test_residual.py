@@ -41,6 +41,21 @@ def test_a_person_two_pixels_wide_the_flow_smoothed_over_is_unmatched_and_nothin
     assert not odd.any()                     # only next to it
 
 
+def test_a_pair_whose_flow_failed_is_not_checked():
+    """Where the flow is pixels off, the residual is everywhere: on a noisy sensor's flight (urban 6262) such pairs
+    marked a third of their windows and kept open ground an obstacle after good pairs had measured it clear."""
+    cur, matched = _grass((60, 80)), _grass((60, 80))
+    matched = cur + np.random.default_rng(2).normal(0.0, 2.0, cur.shape)
+    cur[20:25, 40:42] = 30.0
+    everywhere = np.ones(cur.shape, bool)
+    u8 = (np.clip(cur, 0, 255).astype(np.uint8), np.clip(matched, 0, 255).astype(np.uint8))
+    config = ResidualConfig()
+    assert unmatched_pixels(*u8, everywhere, everywhere, config, flow_noise_px=config.max_flow_noise_px).any()
+    assert not unmatched_pixels(*u8, everywhere, everywhere, config, flow_noise_px=1.5 * config.max_flow_noise_px).any()
+    assert not unmatched_pixels(*u8, everywhere, everywhere, config, flow_noise_px=math.nan).any()
+    assert config.checks(0.0) and not config.checks(0.0, 2.0) and not config.checks(0.5, 0.2)
+
+
 def test_pixels_the_reference_did_not_see_are_never_unmatched_and_the_check_can_be_off():
     cur, matched = _grass((60, 80)), _grass((60, 80), seed=3)       # nothing matches anywhere
     cur[:, :40] = matched[:, :40]
@@ -56,7 +71,7 @@ def test_pixels_the_reference_did_not_see_are_never_unmatched_and_the_check_can_
 
 @pytest.mark.parametrize("field, value", [("ratio", -1.0), ("floor_grey", 0.0), ("box_px", 0), ("reach_m", -0.5),
                                           ("reach_steps", 0), ("min_pixels", 0), ("max_rain_share", -0.1),
-                                          ("min_median", -0.1)])
+                                          ("min_median", -0.1), ("max_flow_noise_px", 0.0)])
 def test_bad_residual_settings_name_the_value(field, value):
     with pytest.raises(InputError, match=field):
         ResidualConfig(**{field: value})

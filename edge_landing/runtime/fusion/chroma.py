@@ -50,15 +50,15 @@ class ChromaMaker:
 
 def chroma_unmatched(cur_half: np.ndarray, ref_half: np.ndarray, hom: np.ndarray, window: tuple[slice, slice],
                      to_ref: tuple[np.ndarray, np.ndarray], usable: np.ndarray, inside: np.ndarray,
-                     config: ResidualConfig, rain_share: float = 0.0) -> np.ndarray:
+                     config: ResidualConfig, rain_share: float = 0.0, flow_noise_px: float = 0.0) -> np.ndarray:
     """Pixels of the current ``window`` whose chroma the flow-warped keyframe's does not match (H×W bool).
 
     ``cur_half``, ``ref_half``: half-size Cr, Cb of the current frame and the keyframe; ``hom``: the plane
     homography (current frame pixel -> keyframe pixel, full size); ``to_ref``: the grey flow's remap maps (x, y of
     each window pixel's match in the plane-warped window, as the grey residual uses them); ``usable``, ``inside``:
-    as for residual.unmatched_pixels.
+    ``rain_share``, ``flow_noise_px``: as for residual.unmatched_pixels.
     """
-    if not config.checks(rain_share):                           # (before the warps: nothing to judge)
+    if not config.checks(rain_share, flow_noise_px):            # (before the warps: nothing to judge)
         return np.zeros(usable.shape, bool)
     cur = warp_window(cur_half, _TO_HALF, window)               # both at the window's full-size pixels
     ref = warp_window(ref_half, _TO_HALF @ hom, window)
@@ -66,5 +66,5 @@ def chroma_unmatched(cur_half: np.ndarray, ref_half: np.ndarray, hom: np.ndarray
     out = np.zeros(cur.shape[:2], bool)
     for ch in range(2):
         out |= unmatched_pixels(np.ascontiguousarray(cur[..., ch]), np.ascontiguousarray(matched[..., ch]), usable,
-                                inside, config, rain_share, floor_grey=config.chroma_floor)
+                                inside, config, rain_share, config.chroma_floor, flow_noise_px)
     return out

@@ -405,10 +405,10 @@ class MotionStage:
                                     cfg.overhang_check_m)
         detectable = np.where(reliable & resolved, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
         out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
-        odd = unmatched_pixels(cur, matched, matched_ok & tex, near & in_ref, cfg.residual, rain)
+        odd = unmatched_pixels(cur, matched, matched_ok & tex, near & in_ref, cfg.residual, rain, None, noise_px)
         if ref.chroma is not None and chroma is not None:
             odd |= chroma_unmatched(chroma, ref.chroma, hom, window, to_ref, matched_ok & tex, near & in_ref,
-                                    cfg.residual, rain)
+                                    cfg.residual, rain, noise_px)
         unmatched = ray_footprints(pose, xc[:, odd], np.nan_to_num(ground[odd]), cfg.residual)
         baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))
         self.last_reason = ""

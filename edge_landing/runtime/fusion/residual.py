@@ -14,7 +14,10 @@ gradient magnitude there (about "how many pixels off the flow is"), exceeds ``ra
 the same (at least ``min_median``: on ground of one colour the chroma's median is the rounding's). The
 reference's gain and offset are fitted to the current image first (white balance and exposure differ between
 frames). Rain streaks are new in every frame and unmatched too: a pair whose rain filter found
-rain (fusion.streaks) is not checked. Unmatched pixels are obstacle evidence that votes in the grid
+rain (fusion.streaks) is not checked. Nor is a pair whose flow failed (its noise above ``max_flow_noise_px``,
+the level above which a pair may not move the ground plane either): where the flow is pixels off, a third of
+the window is "unmatched", and on a noisy sensor's flight those pairs' votes kept open ground marked as
+obstacles long after good pairs had measured it clear. Unmatched pixels are obstacle evidence that votes in the grid
 (fusion.motion_grid): a person is unmatched in most pairs that see them, open ground in few. Never evidence of
 clear ground.
 
@@ -44,6 +47,7 @@ class ResidualConfig:
     colour: bool = True         # check Cr and Cb too (fusion.chroma): people whose grey matches the ground
     chroma_floor: float = 2.0   # the same floor for the chroma channels (levels of 8-bit Cr, Cb)
     max_rain_share: float = 0.01   # a pair with more of its window found to be rain is not checked
+    max_flow_noise_px: float = 0.6  # nor a pair whose flow noise is above this (the flow failed there)
     box_px: int = 3             # the residual is averaged over this box (a person's width at 50 m)
     min_pixels: int = 100       # fewer matched pixels than this: no scale, nothing is unmatched
     # The window's median is taken as at least this: on ground of one colour (asphalt, concrete) the chroma
@@ -52,14 +56,17 @@ class ResidualConfig:
     reach_m: float = 2.0        # metres above the ground an unmatched pixel may show (a standing person)
     reach_steps: int = 9        # points along its ray up to there (0.25 m apart in height)
 
-    def checks(self, rain_share: float) -> bool:
-        """Whether a pair whose rain filter found ``rain_share`` of its window to be rain is checked at all."""
-        return self.ratio > 0 and rain_share <= self.max_rain_share
+    def checks(self, rain_share: float, flow_noise_px: float = 0.0) -> bool:
+        """Whether a pair whose rain filter found ``rain_share`` of its window to be rain, and whose flow's noise
+        is ``flow_noise_px``, is checked at all (NaN noise: not checked)."""
+        return self.ratio > 0 and rain_share <= self.max_rain_share and flow_noise_px <= self.max_flow_noise_px
 
     def __post_init__(self) -> None:
         if not self.ratio >= 0 or not self.reach_m >= 0 or not self.max_rain_share >= 0 or not self.min_median >= 0:
             raise InputError(f"residual ratio, reach_m, max_rain_share and min_median must be >= 0, got {self.ratio}, "
                              f"{self.reach_m}, {self.max_rain_share}, {self.min_median}")
+        if not self.max_flow_noise_px > 0:
+            raise InputError(f"residual max_flow_noise_px must be > 0, got {self.max_flow_noise_px}")
         if not self.floor_grey > 0 or not self.chroma_floor > 0:
             raise InputError(f"residual floor_grey and chroma_floor must be > 0, got {self.floor_grey}, "
                              f"{self.chroma_floor}")
@@ -69,17 +76,18 @@ class ResidualConfig:
 
 
 def unmatched_pixels(cur: np.ndarray, matched: np.ndarray, usable: np.ndarray, inside: np.ndarray,
-                     config: ResidualConfig, rain_share: float = 0.0, floor_grey: Optional[float] = None
-                     ) -> np.ndarray:
+                     config: ResidualConfig, rain_share: float = 0.0, floor_grey: Optional[float] = None,
+                     flow_noise_px: float = 0.0) -> np.ndarray:
     """Pixels of ``cur`` the flow-warped reference ``matched`` (same shape, one channel) does not match (H×W bool).
 
     ``usable``: pixels whose residual sets the scale and the gain (matched, textured); ``inside``: pixels the
     reference saw (elsewhere the residual is no evidence and nothing is unmatched); ``rain_share``: the share of
-    the window the rain filter found to be rain; ``floor_grey``: the noise floor (default ``config.floor_grey``).
+    the window the rain filter found to be rain; ``floor_grey``: the noise floor (default ``config.floor_grey``);
+    ``flow_noise_px``: the pair's flow noise (``ResidualConfig.checks``).
     """
     out = np.zeros(cur.shape, bool)
     usable = usable & inside
-    if not config.checks(rain_share) or int(usable.sum()) < config.min_pixels:
+    if not config.checks(rain_share, flow_noise_px) or int(usable.sum()) < config.min_pixels:
         return out
     c, m = cur.astype(np.float32), matched.astype(np.float32)
     # The gain and the median from every other pixel each way: a quarter of the work, and the statistics of tens
