@@ -158,6 +158,8 @@ def test_a_person_of_the_grass_s_grey_is_unmatched_in_colour_only():
     window, still = (slice(0, 120), slice(0, 160)), (xx, yy)      # no flow: each pixel matches itself
     odd = chroma_unmatched(maker(cur), maker(grass), np.eye(3), window, still, everywhere, everywhere, config)
     assert odd[50:60, 80:84].any()
+    assert not chroma_unmatched(maker(cur), maker(grass), np.eye(3), window, still, everywhere, everywhere, config,
+                                flow_noise_px=2.0).any()     # a pair whose flow failed is not checked in colour either
     odd[46:64, 76:88] = False
     assert not odd.any()
     assert maker(grey_c) is None                              # a grey camera: no colour to compare

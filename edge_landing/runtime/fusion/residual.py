@@ -17,9 +17,9 @@ frames). Rain streaks are new in every frame and unmatched too: a pair whose rai
 rain (fusion.streaks) is not checked. Nor is a pair whose flow failed (its noise above ``max_flow_noise_px``,
 the level above which a pair may not move the ground plane either): where the flow is pixels off, a third of
 the window is "unmatched", and on a noisy sensor's flight those pairs' votes kept open ground marked as
-obstacles long after good pairs had measured it clear. Unmatched pixels are obstacle evidence that votes in the grid
-(fusion.motion_grid): a person is unmatched in most pairs that see them, open ground in few. Never evidence of
-clear ground.
+obstacles long after good pairs had measured it clear. Unmatched pixels are obstacle evidence that votes in
+the grid (fusion.motion_grid): a person is unmatched in most pairs that see them, open ground in few. Never
+evidence of clear ground.
 
 Where it stands: an unmatched pixel's ground point (where its ray meets the ground) lies *behind* what it shows
 when that is above the ground: a person's head seen 45° down is 1.7 m beyond their feet. So the evidence is
