@@ -405,7 +405,7 @@ class MotionStage:
                                     cfg.overhang_check_m)
         detectable = np.where(reliable & resolved, cfg.detect_sigmas * sigma0, np.inf).astype(np.float32)
         out_ned = np.where(near[None], ned, np.nan).astype(np.float32)
-        odd = unmatched_pixels(cur, matched, matched_ok & tex, near & in_ref, cfg.residual, rain, None, noise_px)
+        odd = unmatched_pixels(cur, matched, matched_ok & tex, near & in_ref, cfg.residual, rain, flow_noise_px=noise_px)
         if ref.chroma is not None and chroma is not None:
             odd |= chroma_unmatched(chroma, ref.chroma, hom, window, to_ref, matched_ok & tex, near & in_ref,
                                     cfg.residual, rain, noise_px)
