@@ -11,7 +11,7 @@ import pytest
 from edge_landing.runtime.core.camera import Attitude
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.fusion.motion import CameraPose, MotionConfig
-from edge_landing.runtime.fusion.residual import ResidualConfig, ray_footprints, unmatched_pixels
+from edge_landing.runtime.fusion.residual import ResidualConfig, ray_footprints, unmatched_pixels, without_wide_regions
 from tests.test_motion_evidence import MOUNT, _cell, _grid, _result
 
 
@@ -71,10 +71,33 @@ def test_pixels_the_reference_did_not_see_are_never_unmatched_and_the_check_can_
 
 @pytest.mark.parametrize("field, value", [("ratio", -1.0), ("floor_grey", 0.0), ("box_px", 0), ("reach_m", -0.5),
                                           ("reach_steps", 0), ("min_pixels", 0), ("max_rain_share", -0.1),
-                                          ("min_median", -0.1), ("max_flow_noise_px", 0.0)])
+                                          ("min_median", -0.1), ("max_flow_noise_px", 0.0),
+                                          ("max_region_m", -1.0), ("region_margin_px", -1)])
 def test_bad_residual_settings_name_the_value(field, value):
     with pytest.raises(InputError, match=field):
         ResidualConfig(**{field: value})
+
+
+def test_ground_the_reference_did_not_show_does_not_vote_but_people_and_thin_walls_do():
+    """A building between an approach keyframe and the plaza hides open ground from the reference: thousands of
+    pixels in one region the flow could not match. Such a region, wider on the ground than ``max_region_m``, is
+    not something thin the flow smoothed over, and its pixels (rim included) do not vote; a person (2 × 5 px)
+    and a thin wall (3 px wide, 60 long) still do. Camera 50 m up, 45° down, 640×480, 90° across: at the
+    window's centre 0.22 m of ground per pixel, so 3 m is 14 pixels across and 10 down."""
+    pose = CameraPose.of(MOUNT, Attitude(), np.array([0.0, 0.0, -50.0]), 50.0)
+    k = np.array([[320.0, 0.0, 319.5], [0.0, 320.0, 239.5], [0.0, 0.0, 1.0]])
+    odd = np.zeros((120, 160), bool)
+    odd[10:50, 20:80] = True                                   # the hidden ground
+    odd[30:34, 80:82] = True                                   # ragged rim
+    odd[70:75, 100:102] = True                                 # a person
+    odd[60:63, 20:80] = True                                   # a low wall across the flight
+    odd[90:110, 130:135] = True                                # a post's 1 m wide unmatched trace
+    kept = without_wide_regions(odd, pose, k, (240, 180), ResidualConfig())
+    assert not kept[10:50, 20:82].any()
+    assert kept[70:75, 100:102].all() and kept[60:63, 20:80].all() and kept[90:110, 130:135].all()
+    assert (without_wide_regions(odd, pose, k, (240, 180), ResidualConfig(max_region_m=0.0)) == odd).all()
+    wider = without_wide_regions(odd, pose, k, (240, 180), ResidualConfig(max_region_m=20.0))   # 91 px across
+    assert wider[10:50, 20:80].all()
 
 
 def test_the_evidence_lies_along_the_ray_from_the_ground_back_to_a_persons_height():

@@ -60,7 +60,7 @@ from edge_landing.runtime.fusion.parallax import (
     thin_factor,
 )
 from edge_landing.runtime.fusion.plane_sweep import sweep_plane
-from edge_landing.runtime.fusion.residual import ray_footprints, unmatched_pixels
+from edge_landing.runtime.fusion.residual import ray_footprints, unmatched_pixels, without_wide_regions
 from edge_landing.runtime.fusion.rotation_fit import drift_beyond_an_ekf, pair_rotation_error, rotation_flow
 from edge_landing.runtime.fusion.streaks import RainFilter
 
@@ -409,6 +409,7 @@ class MotionStage:
         if ref.chroma is not None and chroma is not None:
             odd |= chroma_unmatched(chroma, ref.chroma, hom, window, to_ref, matched_ok & tex, near & in_ref,
                                     cfg.residual, rain, noise_px)
+        odd = without_wide_regions(odd, pose, self.k_cv, (cs.start, rs.start), cfg.residual)
         unmatched = ray_footprints(pose, xc[:, odd], np.nan_to_num(ground[odd]), cfg.residual)
         baseline = float(np.linalg.norm(pose.position_ned_m - ref.pose.position_ned_m))
         self.last_reason = ""

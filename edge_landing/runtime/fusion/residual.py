@@ -21,6 +21,14 @@ obstacles long after good pairs had measured it clear. Unmatched pixels are obst
 the grid (fusion.motion_grid): a person is unmatched in most pairs that see them, open ground in few. Never
 evidence of clear ground.
 
+What is too wide to be thin: an unmatched region that holds an ellipse ``max_region_m`` across on the ground
+is not something the flow smoothed over (DIS measures anything wider than its patch, 0.5-0.8 m of ground) but
+ground the reference did not show as it is: on urban flights a building between an approach keyframe and the
+plaza hid thousands of pixels of open ground from it while the rest of the window matched to 0.2-0.4 px, and
+each such pair marked 25-70 % of the open ground in its window. Those regions (a morphological opening, grown by
+``region_margin_px`` to take their ragged rims) do not vote; their pixels remain unexplained for the pair's
+heights all the same.
+
 Where it stands: an unmatched pixel's ground point (where its ray meets the ground) lies *behind* what it shows
 when that is above the ground: a person's head seen 45° down is 1.7 m beyond their feet. So the evidence is
 placed on every cell its ray crosses from the ground up to ``reach_m`` (``ray_footprints``); marked at the
@@ -55,6 +63,8 @@ class ResidualConfig:
     min_median: float = 0.15
     reach_m: float = 2.0        # metres above the ground an unmatched pixel may show (a standing person)
     reach_steps: int = 9        # points along its ray up to there (0.25 m apart in height)
+    max_region_m: float = 3.0   # unmatched regions holding an ellipse this wide on the ground do not vote (0: all do)
+    region_margin_px: int = 2   # ... nor the pixels within this many of them (their ragged rims)
 
     def checks(self, rain_share: float, flow_noise_px: float = 0.0) -> bool:
         """Whether a pair whose rain filter found ``rain_share`` of its window to be rain, and whose flow's noise
@@ -65,6 +75,9 @@ class ResidualConfig:
         if not self.ratio >= 0 or not self.reach_m >= 0 or not self.max_rain_share >= 0 or not self.min_median >= 0:
             raise InputError(f"residual ratio, reach_m, max_rain_share and min_median must be >= 0, got {self.ratio}, "
                              f"{self.reach_m}, {self.max_rain_share}, {self.min_median}")
+        if not self.max_region_m >= 0 or self.region_margin_px < 0:
+            raise InputError(f"residual max_region_m and region_margin_px must be >= 0, got {self.max_region_m}, "
+                             f"{self.region_margin_px}")
         if not self.max_flow_noise_px > 0:
             raise InputError(f"residual max_flow_noise_px must be > 0, got {self.max_flow_noise_px}")
         if not self.floor_grey > 0 or not self.chroma_floor > 0:
@@ -109,6 +122,35 @@ def unmatched_pixels(cur: np.ndarray, matched: np.ndarray, usable: np.ndarray, i
         floor + cv2.boxFilter(grad, -1, box, borderType=cv2.BORDER_REFLECT))
     out[...] = inside & (rel > config.ratio * max(float(np.median(rel[sample])), config.min_median))
     return out
+
+
+def without_wide_regions(odd: np.ndarray, pose: CameraPose, k: np.ndarray, corner_px: tuple[int, int],
+                         config: ResidualConfig) -> np.ndarray:
+    """``odd`` (H×W bool, a window whose top-left pixel is ``corner_px`` = (column, row) in an image with camera
+    matrix ``k``) without its regions that hold an ellipse ``config.max_region_m`` across on the ground plane
+    ``pose.agl_m`` below, nor the pixels within ``config.region_margin_px`` of them. The ellipse is the window
+    centre's: ``max_region_m`` over the ground's metres per pixel across the image, and over its foreshortened
+    metres per pixel down the image."""
+    if config.max_region_m <= 0 or not odd.any():
+        return odd
+    h, w = odd.shape
+    ray = np.linalg.solve(k, np.array([corner_px[0] + 0.5 * (w - 1), corner_px[1] + 0.5 * (h - 1), 1.0]))
+    ray /= np.linalg.norm(ray)
+    cos_in = float((pose.r_nc @ ray)[2])           # the ray's cosine to straight down: its incidence on the ground
+    if not cos_in > 0.05 or not pose.agl_m > 0:
+        return odd
+    per_px = pose.agl_m / cos_in / (0.5 * (k[0, 0] + k[1, 1]))     # ground metres per pixel across the ray
+    size = (max(3, int(round(config.max_region_m / per_px)) | 1),
+            max(3, int(round(config.max_region_m * cos_in / per_px)) | 1))
+    mask = odd.astype(np.uint8)
+    wide = cv2.morphologyEx(mask, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, size))
+    if not wide.any():
+        return odd
+    if config.region_margin_px > 0:
+        side = 2 * config.region_margin_px + 1
+        wide = cv2.dilate(wide, np.ones((side, side), np.uint8))
+    kept: np.ndarray = odd & (wide == 0)
+    return kept
 
 
 def ray_footprints(pose: CameraPose, xc: np.ndarray, ground_m: np.ndarray, config: ResidualConfig) -> np.ndarray:
