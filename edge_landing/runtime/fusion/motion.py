@@ -30,7 +30,7 @@ from edge_landing.runtime.fusion.image_checks import (
     predicted_motion_px,
     texture_masks,
 )
-from edge_landing.runtime.fusion.image_motion import ImagePose, plane_prediction_sigma
+from edge_landing.runtime.fusion.image_motion import ImagePose, widen_for_image_pose
 from edge_landing.runtime.fusion.keyframes import (
     Keyframe,
     PairNoise,
@@ -54,6 +54,7 @@ from edge_landing.runtime.fusion.parallax import (
     column_seen,
     fit_ground,
     ground_surface,
+    height_sigma,
     ned_points,
     parallax_height,
     plane_homography,
@@ -336,7 +337,6 @@ class MotionStage:
             dx, dy = rotation_flow(xr[0], xr[1], omega)
             xr = (xr[0] - dx, xr[1] - dy)
         hgt, gnorm, cross = parallax_height(xc, xr, rot, t, n, d)
-        shape = cur.shape
         # The residual across the epipolar direction is flow error only (parallax lies along it): its robust
         # spread is this pair's flow noise, used when above the configured floor.
         # Textureless pixels are left out: their flow is filled in from around them, with no residual of its own.
@@ -360,32 +360,10 @@ class MotionStage:
                          start_m=0.0 if sweep.raised else None)
         ground = ground_surface(fit, ned, pose.position_ned_m)
         local = hgt - ground
-        # dh/ds = (d - h)^2 / d: the plane's sensitivity holds only at the plane; ground below it (a rangefinder
-        # reading a roof, a slope) is measured with the error of its own, larger, range.
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sigma0 = np.maximum(d - ground, 0.1 * d) ** 2 / d * (noise_px / f) / gnorm
-            # The across-epipolar spread misses errors along the epipolar lines (perspective change between
-            # the pair, DIS's smoothing): the measured heights' own robust spread, in units of sigma0, corrects
-            # it (obstacles are a minority of the pixels; they can only inflate it, the safe direction).
-            z = np.abs(local) / sigma0
-        usable = reliable & np.isfinite(z)
-        if int(usable.sum()) >= 100:
-            scale = 1.4826 * float(np.median(z[usable]))
-            if scale > 1.0:
-                sigma0 = sigma0 * scale
-                noise_px *= scale
+        sigma0, widened, usable = height_sigma(d, ground, noise_px / f, gnorm, local, reliable)
+        noise_px *= widened          # (× 1.0 when the heights' spread did not widen it)
         if image_pose is not None:
-            # The image pose's translation error moves the plane prediction along the parallax direction
-            # (image_motion.plane_prediction_sigma): extra noise; its scale error ε (the height above ground)
-            # makes heights read low by up to detect_sigmas · ε. Never easier than a telemetry pose.
-            xr_flat = np.stack(xr).reshape(2, -1)
-            g = t[:2, None] - xr_flat * t[2]
-            pose_n = plane_prediction_sigma(xc.reshape(2, -1).astype(np.float64), rot, t, n, d,
-                                            image_pose.cov_ref_m2, g).reshape(shape)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                sigma_pose = np.maximum(d - ground, 0.1 * d) ** 2 / d * pose_n / gnorm
-            margin = 1.0 / max(1e-3, 1.0 - cfg.detect_sigmas * image_pose.scale_sigma_rel)
-            sigma0 = np.hypot(sigma0, sigma_pose) * margin
+            sigma0 = widen_for_image_pose(sigma0, xc, xr, (rot, t, n, d), ground, gnorm, image_pose, cfg.detect_sigmas)
         height = np.where(reliable, local, np.nan).astype(np.float32)
         patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)   # its footprint on the ground:
         footprint = patch_px * np.sqrt(np.sum((ned - pose.position_ned_m[:, None, None]) ** 2, axis=0)) / f
