@@ -264,19 +264,20 @@ def plane_prediction_sigma(xc: np.ndarray, rot: np.ndarray, t: np.ndarray, n: np
 
 
 def widen_for_image_pose(sigma0: np.ndarray, xc: np.ndarray, xr: tuple[np.ndarray, np.ndarray],
-                         pair: tuple[np.ndarray, np.ndarray, np.ndarray, float], ground: np.ndarray,
+                         pair: tuple[np.ndarray, np.ndarray, np.ndarray, float], gain: np.ndarray,
                          gnorm: np.ndarray, image_pose: ImagePose, detect_sigmas: float) -> np.ndarray:
     """A telemetry pair's height σ (H×W) widened for an image pose: its translation error moves the plane
     prediction along the parallax direction (plane_prediction_sigma), extra noise; its scale error ε (the height
     above ground) makes heights read low by up to ``detect_sigmas`` · ε. Never easier than a telemetry pose.
-    ``xc`` (2×H×W) and ``xr`` the pair's normalised points, ``pair`` = (R, t, n, d) its plane geometry."""
+    ``xc`` (2×H×W) and ``xr`` the pair's normalised points, ``pair`` = (R, t, n, d) its plane geometry, ``gain`` and
+    ``gnorm`` its range gain (parallax.range_gain) and parallax gradient norm per pixel."""
     rot, t, n, d = pair
     xr_flat = np.stack(xr).reshape(2, -1)
     g = t[:2, None] - xr_flat * t[2]
     pose_n = plane_prediction_sigma(xc.reshape(2, -1).astype(np.float64), rot, t, n, d, image_pose.cov_ref_m2,
                                     g).reshape(sigma0.shape)
     with np.errstate(divide="ignore", invalid="ignore"):
-        sigma_pose = np.maximum(d - ground, 0.1 * d) ** 2 / d * pose_n / gnorm
+        sigma_pose = gain * pose_n / gnorm
     margin = 1.0 / max(1e-3, 1.0 - detect_sigmas * image_pose.scale_sigma_rel)
     out: np.ndarray = np.hypot(sigma0, sigma_pose) * margin
     return out

@@ -58,6 +58,7 @@ from edge_landing.runtime.fusion.parallax import (
     ned_points,
     parallax_height,
     plane_homography,
+    range_gain,
     thin_factor,
 )
 from edge_landing.runtime.fusion.plane_sweep import sweep_plane
@@ -360,10 +361,11 @@ class MotionStage:
                          start_m=0.0 if sweep.raised else None)
         ground = ground_surface(fit, ned, pose.position_ned_m)
         local = hgt - ground
-        sigma0, widened, usable = height_sigma(d, ground, noise_px / f, gnorm, local, reliable)
+        gain = range_gain(d, ground)
+        sigma0, widened, usable = height_sigma(gain, noise_px / f, gnorm, local, reliable)
         noise_px *= widened          # (× 1.0 when the heights' spread did not widen it)
         if image_pose is not None:
-            sigma0 = widen_for_image_pose(sigma0, xc, xr, (rot, t, n, d), ground, gnorm, image_pose, cfg.detect_sigmas)
+            sigma0 = widen_for_image_pose(sigma0, xc, xr, (rot, t, n, d), gain, gnorm, image_pose, cfg.detect_sigmas)
         height = np.where(reliable, local, np.nan).astype(np.float32)
         patch_px = float(self._dis.getPatchSize() * 2 ** cfg.dis_finest_scale)   # its footprint on the ground:
         footprint = patch_px * np.sqrt(np.sum((ned - pose.position_ned_m[:, None, None]) ** 2, axis=0)) / f

@@ -110,21 +110,27 @@ def ned_points(pose: CameraPose, xc: np.ndarray, lam_scale: np.ndarray) -> tuple
     return pts, nx
 
 
-def height_sigma(d: float, ground: np.ndarray, noise_rad: float, gnorm: np.ndarray, local: np.ndarray,
+def range_gain(d: float, ground: np.ndarray) -> np.ndarray:
+    """dh/ds = (d - h)^2 / d per pixel, for the local ground ``ground`` above the plane ``d`` below the camera: the
+    plane's sensitivity holds only at the plane; ground below it (a rangefinder reading a roof, a slope) is
+    measured with the error of its own, larger, range (h is taken as at most 0.9 d)."""
+    out: np.ndarray = np.maximum(d - ground, 0.1 * d) ** 2 / d
+    return out
+
+
+def height_sigma(gain: np.ndarray, noise_rad: float, gnorm: np.ndarray, local: np.ndarray,
                  reliable: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     """(1-σ height per pixel, the factor (>= 1) by which the heights' own spread widened it, the pixels whose
-    heights set that factor) of a pair whose flow noise across the epipolar lines is ``noise_rad`` (normalised units),
-    with the plane ``d`` below the camera, the local ground ``ground`` above it, the parallax gradient norm
-    ``gnorm`` and the heights above the local ground ``local``, of which ``reliable`` ones count.
+    heights set that factor) of a pair whose flow noise across the epipolar lines is ``noise_rad`` (normalised
+    units), with the range gain ``gain`` (range_gain), the parallax gradient norm ``gnorm`` and the heights above
+    the local ground ``local``, of which ``reliable`` ones count.
 
-    dh/ds = (d - h)^2 / d: the plane's sensitivity holds only at the plane; ground below it (a rangefinder reading
-    a roof, a slope) is measured with the error of its own, larger, range. The across-epipolar spread misses
-    errors along the epipolar lines (perspective change between the pair, DIS's smoothing): the measured
-    heights' own robust spread, in units of that σ, corrects it (obstacles are a minority of the pixels; they can
-    only inflate it, the safe direction).
+    The across-epipolar spread misses errors along the epipolar lines (perspective change between the pair, DIS's
+    smoothing): the measured heights' own robust spread, in units of that σ, corrects it (obstacles are a minority
+    of the pixels; they can only inflate it, the safe direction).
     """
     with np.errstate(divide="ignore", invalid="ignore"):
-        sigma0 = np.maximum(d - ground, 0.1 * d) ** 2 / d * noise_rad / gnorm
+        sigma0 = gain * noise_rad / gnorm
         z = np.abs(local) / sigma0
     usable = reliable & np.isfinite(z)
     widened = 1.0

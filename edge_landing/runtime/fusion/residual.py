@@ -25,7 +25,7 @@ What is too wide to be thin: an unmatched region that holds an ellipse ``max_reg
 is not something the flow smoothed over (DIS measures anything wider than its patch, 0.5-0.8 m of ground) but
 ground the reference did not show as it is: on urban flights a building between an approach keyframe and the
 plaza hid thousands of pixels of open ground from it while the rest of the window matched to 0.2-0.4 px, and
-each such pair marked 25-70 % of the open ground in its window. Those regions (a morphological opening, grown by
+14 such pairs marked 13-71 % of the open ground in their windows. Those regions (a morphological opening, grown by
 ``region_margin_px`` to take their ragged rims) do not vote; their pixels remain unexplained for the pair's
 heights all the same.
 
