@@ -227,6 +227,42 @@ def test_a_height_that_stays_changed_starts_a_new_odometry_frame():
     assert max(err for _, err, _ in flown[:first_new]) < 0.3, [round(err, 2) for _, err, _ in flown]
 
 
+def test_a_height_first_read_off_a_tree_starts_the_odometry_over_when_the_ground_shows():
+    """The rangefinder reads a 7 m tree under the first 10 frames, then the ground: nothing on the ground reads
+    long, so the carried height was the tree's, and every step at its scale was short (suburban 6930 without a
+    position: 0.87 of the truth). The odometry starts over at the longer height after ``agl_longer_max_s``, says
+    why, and from there the frames follow the truth within 0.3 m."""
+    world = _flat_world([[30.0, 10.0, 2.0, 1.0, 1.5], [45.0, -8.0, 2.2, 0.9, 1.5]])
+    path = [(-10.0 + 0.5 * k, 1.5 * math.sin(0.15 * k), -30.0) for k in range(30)]
+    flown = _fly_without_position(world, path, lambda k: 7.0 if k < 10 else 0.0)
+    epochs = [epoch for epoch, _, _ in flown]
+    first_new = epochs.index(2)
+    longest = 10 + math.ceil(ImagePoseConfig().agl_longer_max_s * FPS)
+    assert 10 <= first_new <= longest, epochs
+    assert set(epochs[first_new:]) == {2}, epochs
+    assert "longer than the" in flown[first_new][2] and "read off something" in flown[first_new][2], flown[first_new]
+    since = [err for (_, err, _) in _fly_without_position(world, path[first_new:], lambda k: 0.0)]
+    assert max(since) < 0.3, [round(e, 2) for e in since]
+
+
+def test_a_vehicle_hovering_over_a_tree_keeps_the_carried_height():
+    """A vehicle that stops over a 7 m tree reads it for 3 s: past ``agl_refused_max_s`` but with no flight across
+    the ground, whose level cannot have changed, so the carried height stays and the odometry goes on."""
+    world = _flat_world([[30.0, 10.0, 2.0, 1.0, 1.5], [45.0, -8.0, 2.2, 0.9, 1.5]])
+    path = [(-10.0 + 0.5 * min(k, 12), 0.0, -30.0) for k in range(12 + int(3 * FPS))]
+    flown = _fly_without_position(world, path, lambda k: 7.0 if k >= 12 else 0.0)
+    assert {epoch for epoch, _, _ in flown} == {1}, [(e, why) for e, _, why in flown if why]
+    assert max(err for _, err, _ in flown) < 0.3, [round(err, 2) for _, err, _ in flown]
+
+
+@pytest.mark.parametrize("field", ["agl_refused_max_s", "agl_refused_travel_m", "agl_longer_max_s"])
+def test_height_refusal_settings_name_a_bad_value(field):
+    from edge_landing.runtime.core.errors import InputError
+
+    with pytest.raises(InputError, match=field):
+        ImagePoseConfig(**{field: -1.0})
+
+
 def test_a_step_no_multirotor_flies_starts_the_odometry_over():
     """A flat roof taken for the ground scales the chained translation by the ratio of the heights (urban 1041
     without a position: 2.07 -> 5.45 m per frame, and the frames drifted 10 m in 0.3 s before the chain broke on

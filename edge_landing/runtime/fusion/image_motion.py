@@ -57,9 +57,19 @@ class ImagePoseConfig:
     # A height above ground that differs from the one the images carry over from the previous frame by more than
     # this (+ 3 σ of the pair's climb) read something that is not the ground: a rangefinder over a tree or a car
     # (the carried height is used instead); refused for longer than ``agl_refused_max_s``, the ground itself
-    # changed level, and the odometry starts over.
+    # changed level, and the odometry starts over. Things on the ground make a rangefinder read short, never long,
+    # so a height that stays longer than the carried one for ``agl_longer_max_s`` means the carried height itself
+    # was read off something standing there (a tree under the chain's first frames: every step 0.87 of the truth,
+    # suburban 6930), and the odometry starts over at once, at the longer height. The short wait lets one
+    # glitching reading pass: starting over at it would carry a wrong height instead.
+    # A shorter height is refused for longer than ``agl_refused_max_s`` only once the vehicle has also moved
+    # ``agl_refused_travel_m`` across the ground since: the ground's level changes under a vehicle only as it flies
+    # over it, and one hovering over a tree would otherwise take the crown for the ground (suburban 6930's hover:
+    # 53.7 m read against 60.6 m, and the odometry started over at the crown's height).
     agl_gate_m: float = 0.5
     agl_refused_max_s: float = 2.0
+    agl_refused_travel_m: float = 8.0
+    agl_longer_max_s: float = 0.25
     # A chained step that changes the velocity faster than this (+ 3 σ) is no flight: the odometry starts over. A
     # flat roof taken for the ground scales the translation by the ratio of the heights (urban 1041 without
     # position: 2.07 -> 5.45 m per frame at 10 frames/s, 340 m/s², and the frames drifted 10 m in 0.3 s). 5 g is
@@ -75,9 +85,11 @@ class ImagePoseConfig:
                      "max_residual_px", "max_range_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"image pose {name} must be > 0, got {getattr(self, name)}")
-        if not (self.agl_gate_m > 0 and self.agl_refused_max_s >= 0):
-            raise InputError(f"image pose agl_gate_m must be > 0 and agl_refused_max_s >= 0, got {self.agl_gate_m}, "
-                             f"{self.agl_refused_max_s}")
+        if not (self.agl_gate_m > 0 and self.agl_refused_max_s >= 0 and self.agl_longer_max_s >= 0
+                and self.agl_refused_travel_m >= 0):
+            raise InputError(f"image pose agl_gate_m must be > 0, agl_refused_max_s, agl_refused_travel_m and "
+                             f"agl_longer_max_s >= 0, got {self.agl_gate_m}, {self.agl_refused_max_s}, "
+                             f"{self.agl_refused_travel_m}, {self.agl_longer_max_s}")
         if not self.max_accel_mps2 > 0:
             raise InputError(f"image pose max_accel_mps2 must be > 0, got {self.max_accel_mps2}")
         if not self.sigma_inflation >= 1:

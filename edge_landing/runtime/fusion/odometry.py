@@ -36,6 +36,8 @@ class ImageOdometry:
         self._delta: Optional[np.ndarray] = None          # the last chained translation (the next one's prior)
         self._velocity: Optional[tuple[np.ndarray, float]] = None   # of the last chained step (m/s, its 1-σ)
         self._refused_s: Optional[float] = None           # since when the reported height has been refused
+        self._refused_longer = False                      # ... whether it was longer than the carried one
+        self._refused_at_m = np.zeros(2)                  # ... and where the vehicle was then (north, east)
 
     def reset(self) -> None:
         self.anchored, self.estimate, self._telemetry_s = False, None, -math.inf
@@ -116,18 +118,27 @@ class ImageOdometry:
         start over.
 
         The images carry the previous frame's height over (image_motion.carried_height_m). A reported height
-        within ``agl_gate_m`` + 3 σ of it is used (it follows the terrain). One farther off read something other
-        than the ground, a rangefinder over a tree or a car, whose error would scale every pair (10 % short puts
-        a frame 3 m off over a 30 m pair): the carried height is used instead for up to ``agl_refused_max_s``;
-        past that the ground's level itself changed, and the odometry starts over."""
+        within ``agl_gate_m`` + 3 σ of it is used (it follows the terrain). One shorter read something standing on
+        the ground, a rangefinder over a tree or a car, whose error would scale every pair (10 % short puts a frame
+        3 m off over a 30 m pair): the carried height is used instead until it has been refused for
+        ``agl_refused_max_s`` and ``agl_refused_travel_m`` of flight; past both the ground's level itself changed,
+        and the odometry starts over. One longer (nothing on the ground reads long) means the carried height was
+        the one read off something: past ``agl_longer_max_s`` the odometry starts over at the reported height."""
         cfg = self.config.image_pose
         carried = carried_height_m(prev.scale_agl_m, est.delta_ned_m, agl_m)
         if not math.isfinite(carried) or abs(agl_m - carried) <= cfg.agl_gate_m + 3.0 * est.sigma_m:
             self._refused_s = None
             return agl_m, ""
-        if self._refused_s is None:
-            self._refused_s = time_s
-        if time_s - self._refused_s > cfg.agl_refused_max_s:
+        longer = agl_m > carried
+        here_m = prev.pose.position_ned_m[:2] + est.delta_ned_m[:2] * (carried / agl_m)   # at the carried scale
+        if self._refused_s is None or longer != self._refused_longer:
+            self._refused_s, self._refused_longer, self._refused_at_m = time_s, longer, here_m
+        if longer and time_s - self._refused_s >= cfg.agl_longer_max_s:
+            return None, (f"height above ground {agl_m:.1f} m, longer than the {carried:.1f} m carried by the images "
+                          f"for {cfg.agl_longer_max_s:.2f} s: the carried height was read off something standing on "
+                          "the ground")
+        travel_m = float(np.hypot(*(here_m - self._refused_at_m)))
+        if not longer and time_s - self._refused_s > cfg.agl_refused_max_s and travel_m >= cfg.agl_refused_travel_m:
             return None, (f"height above ground {agl_m:.1f} m against {carried:.1f} m carried by the images for more "
-                          f"than {cfg.agl_refused_max_s:.1f} s")
+                          f"than {cfg.agl_refused_max_s:.1f} s and {travel_m:.0f} m")
         return carried, ""
