@@ -200,7 +200,7 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
                         st["failures"].append({"frame": k, "why": why,
                                                "ned_m": [round(float(v), 2) for v in target.position_ned_m[:2]]})
                 if trace is not None and kind == "geometry":
-                    trace.write(json.dumps(_trace_row(k, n_app, n_hov, name, s, target, fuser)) + "\n")
+                    trace.write(json.dumps(_trace_row(k, n_app, n_hov, name, s, target, fuser, outcomes)) + "\n")
             if k % cfg.recall_every == 0:
                 origin = (float(s.position_ned_m[0]), float(s.position_ned_m[1])) if cfg.no_position else (0.0, 0.0)
                 counts = cell_recall(world, run["geometry"], s.agl_m, origin_ne_m=origin)
@@ -222,14 +222,16 @@ def weather_text(weather: dict[str, float]) -> str:
             f"blur {weather['motion_blur_px']:g} px")
 
 
-def _trace_row(k: int, n_app: int, n_hov: int, name: str, s: Any, target: Any, fuser: LandingFuser
-               ) -> dict[str, Any]:
-    """One frame of one model, for diagnosis: phase, target or reason, what the motion stage measured."""
+def _trace_row(k: int, n_app: int, n_hov: int, name: str, s: Any, target: Any, fuser: LandingFuser,
+               outcomes: dict[str, Any]) -> dict[str, Any]:
+    """One frame of one model, for diagnosis: phase, fusion's target or reason, whether continuity sent one and
+    the network alone had one, what the motion stage measured."""
     res = fuser.stage_result
     row: dict[str, Any] = {
         "frame": k, "model": name, "phase": "approach" if k < n_app else "hover" if k < n_app + n_hov else "descent",
         "agl_m": round(float(s.agl_m), 1), "valid": bool(target.valid), "reason": target.reason,
-        "evidence": target.evidence, "motion": fuser.stage_reason}
+        "evidence": target.evidence, "motion": fuser.stage_reason, "sent": bool(outcomes["sent"].valid),
+        "network": bool(outcomes["network"].valid)}
     if res is not None:
         det = res.detectable_m[np.isfinite(res.detectable_m)]
         row.update(baseline_m=round(res.baseline_m, 2), ref_age_s=round(res.reference_age_s, 2),
@@ -307,7 +309,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
                    "fusion sees: none (the simulator's exact pose), typical or harsh (benchmarks.pose_errors)")
     p.add_argument("--error-seed", type=int, default=0, help="seed of the pose errors")
     p.add_argument("--json", help="write the result here")
-    p.add_argument("--trace", default="", help="write one JSON line per frame and model (reasons, motion figures)")
+    p.add_argument("--trace", default="", help="write one JSON line per frame and model (fusion's reason, whether a "
+                   "target was sent and the network alone had one, motion figures)")
     p.add_argument("--geometry-timing", default="overlapped", help="overlapped (edge-run's default: a frame's "
                    "motion geometry reaches the next frame) or inline")
     a = p.parse_args(argv)
