@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -20,6 +20,15 @@ from edge_landing.runtime.fusion.motion_config import POSE_TELEMETRY, MotionConf
 from edge_landing.runtime.fusion.parallax import CameraPose
 
 __all__ = ["ImageOdometry"]
+
+
+class _Refusal(NamedTuple):
+    """A reported height refused since ``since_s``: longer or shorter than the carried one, and where the vehicle
+    was then (north, east, m)."""
+
+    since_s: float
+    longer: bool
+    at_ne_m: np.ndarray
 
 
 class ImageOdometry:
@@ -35,13 +44,11 @@ class ImageOdometry:
         self._telemetry_s = -math.inf        # when the last frame with a telemetry position came
         self._delta: Optional[np.ndarray] = None          # the last chained translation (the next one's prior)
         self._velocity: Optional[tuple[np.ndarray, float]] = None   # of the last chained step (m/s, its 1-σ)
-        self._refused_s: Optional[float] = None           # since when the reported height has been refused
-        self._refused_longer = False                      # ... whether it was longer than the carried one
-        self._refused_at_m = np.zeros(2)                  # ... and where the vehicle was then (north, east)
+        self._refused: Optional[_Refusal] = None          # the reported height's refusal under way, if any
 
     def reset(self) -> None:
         self.anchored, self.estimate, self._telemetry_s = False, None, -math.inf
-        self._delta, self._refused_s, self._velocity = None, None, None
+        self._delta, self._refused, self._velocity = None, None, None
 
     def telemetry_seen(self, time_s: float) -> None:
         """A frame came with a telemetry position: the next frames without one are chained from it."""
@@ -92,7 +99,7 @@ class ImageOdometry:
         return replace(pose, position_ned_m=ref.pose.position_ned_m + est.delta_ned_m), est
 
     def _start_over(self, pose: CameraPose) -> CameraPose:
-        self.anchored, self._delta, self._refused_s, self._velocity = False, None, None, None
+        self.anchored, self._delta, self._refused, self._velocity = False, None, None, None
         self.epoch += 1
         return replace(pose, position_ned_m=np.zeros(3))
 
@@ -127,18 +134,19 @@ class ImageOdometry:
         cfg = self.config.image_pose
         carried = carried_height_m(prev.scale_agl_m, est.delta_ned_m, agl_m)
         if not math.isfinite(carried) or abs(agl_m - carried) <= cfg.agl_gate_m + 3.0 * est.sigma_m:
-            self._refused_s = None
+            self._refused = None
             return agl_m, ""
         longer = agl_m > carried
         here_m = prev.pose.position_ned_m[:2] + est.delta_ned_m[:2] * (carried / agl_m)   # at the carried scale
-        if self._refused_s is None or longer != self._refused_longer:
-            self._refused_s, self._refused_longer, self._refused_at_m = time_s, longer, here_m
-        if longer and time_s - self._refused_s >= cfg.agl_longer_max_s:
+        if self._refused is None or longer != self._refused.longer:
+            self._refused = _Refusal(time_s, longer, here_m)
+        refused_for_s = time_s - self._refused.since_s
+        if longer and refused_for_s >= cfg.agl_longer_max_s:
             return None, (f"height above ground {agl_m:.1f} m, longer than the {carried:.1f} m carried by the images "
                           f"for {cfg.agl_longer_max_s:.2f} s: the carried height was read off something standing on "
                           "the ground")
-        travel_m = float(np.hypot(*(here_m - self._refused_at_m)))
-        if not longer and time_s - self._refused_s > cfg.agl_refused_max_s and travel_m >= cfg.agl_refused_travel_m:
+        travel_m = float(np.hypot(*(here_m - self._refused.at_ne_m)))
+        if not longer and refused_for_s > cfg.agl_refused_max_s and travel_m >= cfg.agl_refused_travel_m:
             return None, (f"height above ground {agl_m:.1f} m against {carried:.1f} m carried by the images for more "
                           f"than {cfg.agl_refused_max_s:.1f} s and {travel_m:.0f} m")
         return carried, ""
