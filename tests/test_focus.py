@@ -89,3 +89,31 @@ def test_a_skip_radius_that_is_not_a_number_is_refused():
     for bad in (math.nan, math.inf, -math.inf, 1e9):
         with pytest.raises(InputError, match="focus_skip_obstacles_m"):
             FusionConfig(focus_skip_obstacles_m=bad)
+
+
+def test_the_window_may_go_to_ground_a_confirmation_would_accept_not_only_to_network_landable_ground():
+    """A network whose landable discs are all on one roof (a network trained elsewhere) but which calls the
+    streets horizontal: confirmation accepts geometry-clear horizontal ground (fusion.confirm), so the window
+    must be able to go there, or the stage keeps measuring the roof, where the flow fails, and nothing is ever
+    confirmed (the shipped model on urban 1505 and 7202 sent no target before)."""
+    from edge_landing.runtime.fusion.cells import clearance_from_mask
+
+    size = 40
+    sums = np.zeros((5, size, size))
+    sums[0], sums[1], sums[3] = 1.0, 2.0, 1.0          # every cell observed once, 2 m down, horizontal
+    landable = np.zeros((size, size), bool)
+    landable[2:10, 2:10] = True                         # the roof: the only network-landable ground
+    view = GridView("ned", 1.0, 0.0, 0.0, 0.0, sums, landable, clearance_from_mask(landable, 1.0))
+    first = np.array([5.5, 5.5, 2.0])                   # the network's spot, on the roof
+    config = FusionConfig()
+    roof_only = focus_candidates(view, first, (0.0, 0.0), config, use_hvo=False)
+    np.testing.assert_allclose(roof_only, [first])      # nothing else landable lies 10 m from the spot
+    picks = focus_candidates(view, first, (0.0, 0.0), config, use_hvo=True)
+    np.testing.assert_allclose(picks[0], first)         # the network's spot still comes first
+    assert len(picks) == 3
+    for north, east, _ in picks[1:]:
+        assert not landable[int(north), int(east)] and np.hypot(north - first[0], east - first[1]) >= 10.0
+    off = focus_candidates(view, first, (0.0, 0.0), FusionConfig(confirm_on_horizontal=False), use_hvo=True)
+    np.testing.assert_allclose(off, roof_only)          # confirmation takes landable ground only: so does the window
+    sums[3] = 0.0                                       # streets the network does not call horizontal
+    np.testing.assert_allclose(focus_candidates(view, first, (0.0, 0.0), config, use_hvo=True), roof_only)

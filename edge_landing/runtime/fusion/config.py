@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 from edge_landing.runtime.core.errors import InputError
 from edge_landing.runtime.fusion.deferred import StageTiming
@@ -109,3 +110,8 @@ class FusionConfig:
     @property
     def required_clearance_m(self) -> float:
         return self.vehicle_radius_m + self.margin_m
+
+    def horizontal_share_to_confirm(self, use_hvo: bool) -> Optional[float]:
+        """The mean P(horizontal) at which an observed cell counts as one the network does not object to
+        (GridView.allowed_in), or None where only landable cells do (no HVO head, or confirm_on_horizontal off)."""
+        return self.min_horizontal_share if use_hvo and self.confirm_on_horizontal else None

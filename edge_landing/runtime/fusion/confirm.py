@@ -235,13 +235,7 @@ class GeometryConfirmation:
                 self.verdicts.clear()
             return replace(view, landable=landable, clearance_m=clearance_from_mask(landable, view.cell_m))
         win = (slice(y, y + h), slice(x, x + w))
-        allowed = view.landable[win]
-        if use_hvo and self.config.confirm_on_horizontal:
-            # GridView.horizontal_share_in's shares, without its NaN fill (0/0 is NaN anyway, and NaN >= x is
-            # False): a third of its time on a box of most of the grid.
-            with np.errstate(invalid="ignore", divide="ignore"):
-                horizontal = view.sums[3][win] / view.sums[0][win] >= self.config.min_horizontal_share
-            allowed = allowed | (view.observed_in(win) & horizontal)
+        allowed = view.allowed_in(win, self.config.horizontal_share_to_confirm(use_hvo))
         if ned:
             self.verdicts.update(view, win, allowed, now)
             # (where fusion's grid still holds the cell's decayed sums: its level and shares)

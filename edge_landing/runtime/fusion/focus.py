@@ -1,12 +1,15 @@
 """Where the motion stage looks: candidate spots for its window (ARCHITECTURE.md §11), pure numpy + OpenCV.
 
 The stage measures one window per run, centred on one of a few candidate spots: the network's own spot first,
-then the best-scoring other network-landable cells, far enough apart. A spot that geometry has already seen an
-obstacle beside (within the required clearance) cannot be confirmed by measuring it again, so neither it nor
-any other candidate is taken there: the window goes to ground geometry has not ruled out. Without this a
-network that keeps proposing a car or a roof's edge (a network trained elsewhere, or the flat-lying model of
-benchmarks/lying_model.py) keeps the stage measuring the one spot it already rejected, and nothing else is ever
-confirmed. Where to look is all this changes: what confirms a spot is fusion.confirm's rule, as before.
+then the best-scoring other cells far enough apart, among the ground a confirmation may use (fusion.confirm:
+network-landable, or observed and horizontal by its HVO head). Drawn from network-landable cells alone, a
+network whose landable discs all lay on roofs (flow fails there) kept the window off the streets it called
+horizontal, and nothing was ever confirmed (docs/MEASUREMENTS.md, "Where the window may go"). Opt-in: a spot
+that geometry has already seen an obstacle beside (within the required clearance) cannot be confirmed by
+measuring it again, so neither it nor any other candidate is taken there: the window goes to ground geometry
+has not ruled out. Without this a network that keeps proposing a car or a roof's edge (a network trained
+elsewhere, or the flat-lying model of benchmarks/lying_model.py) keeps the stage measuring the one spot it
+already rejected. Where to look is all this module changes: what confirms a spot is fusion.confirm's rule.
 """
 from __future__ import annotations
 
@@ -17,12 +20,13 @@ from typing import TYPE_CHECKING, Optional
 import cv2
 import numpy as np
 
+from edge_landing.runtime.fusion.cells import clearance_from_mask
 from edge_landing.runtime.fusion.grid import GridView
 
 if TYPE_CHECKING:
     from edge_landing.runtime.fusion.config import FusionConfig
 
-__all__ = ["KnownObstacles", "focus_candidates", "ruled_out"]
+__all__ = ["KnownObstacles", "acceptable_clearance", "focus_candidates", "ruled_out"]
 
 
 @dataclass(frozen=True)
@@ -56,38 +60,51 @@ def ruled_out(view: GridView, known: KnownObstacles, radius_m: float) -> np.ndar
 
 
 def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, float], config: FusionConfig,
-                     count: int = 3, separation_m: float = 10.0, known: Optional[KnownObstacles] = None
-                     ) -> np.ndarray:
-    """Up to ``count`` network-landable spots (K×3 NED or grid frame) for the motion stage's window: ``first``
-    (the network's spot), then the best-scoring others at least ``separation_m`` from those already taken.
-    The stage measures where a keyframe sees best (fusion.motion), so ground off the vehicle's line of
-    flight gets measured too. With ``known`` obstacles (on the same frame as ``view``) and
-    ``config.focus_skip_obstacles_m`` >= 0 (negative: off, the default), no candidate is taken within that many
-    metres of one (0: on one), ``first`` included; when that leaves none, ``first`` alone."""
+                     count: int = 3, separation_m: float = 10.0, known: Optional[KnownObstacles] = None,
+                     use_hvo: bool = False) -> np.ndarray:
+    """Up to ``count`` spots (K×3 NED or grid frame) for the motion stage's window: ``first`` (the network's
+    spot), then the best-scoring others at least ``separation_m`` from those already taken, among the discs of
+    ground a confirmation may use (:func:`acceptable_clearance`). The stage measures where a keyframe sees best
+    (fusion.motion), so ground off the vehicle's line of flight gets measured too. With ``known`` obstacles (on
+    the same frame as ``view``) and ``config.focus_skip_obstacles_m`` >= 0 (negative: off, the default), no
+    candidate is taken within that many metres of one (0: on one), ``first`` included; when that leaves none,
+    ``first`` alone."""
     need, skip_m = config.required_clearance_m, config.focus_skip_obstacles_m
     blocked = None if known is None or skip_m < 0 else ruled_out(view, known, skip_m)
     out: list[np.ndarray] = []
     cell = view.cell_of(float(first[0]), float(first[1]))
     if blocked is None or cell is None or not blocked[cell]:
         out.append(np.asarray(first, np.float64))
-    flat = view.clearance_m.ravel() >= need - 1e-6
+    clearance = acceptable_clearance(view, config, use_hvo)
+    flat = clearance.ravel() >= need - 1e-6
     if blocked is not None:
         flat &= ~blocked.ravel()
     idx = np.flatnonzero(flat)
     if idx.size and count > len(out):
-        out += _spread_picks(view, idx, here_ne, config, count - len(out), separation_m, out, first)
+        out += _spread_picks(view, clearance, idx, here_ne, config, count - len(out), separation_m, out, first)
     return np.stack(out) if out else np.asarray(first, np.float64)[None, :]
 
 
-def _spread_picks(view: GridView, idx: np.ndarray, here_ne: tuple[float, float], config: FusionConfig, count: int,
-                  separation_m: float, taken: list[np.ndarray], first: np.ndarray) -> list[np.ndarray]:
+def acceptable_clearance(view: GridView, config: FusionConfig, use_hvo: bool) -> np.ndarray:
+    """Clearance (m, the grid's shape) of the ground a confirmation may use: cells the network does not object
+    to (``GridView.allowed_in``, fusion.confirm's rule: landable, or observed and horizontal by an HVO head),
+    not only its landable ones. Where that adds no cell, the view's own clearance (the same distances)."""
+    allowed = view.allowed_in((slice(None), slice(None)), config.horizontal_share_to_confirm(use_hvo))
+    if not np.any(allowed & ~view.landable):
+        return view.clearance_m
+    return clearance_from_mask(allowed, view.cell_m)
+
+
+def _spread_picks(view: GridView, clearance: np.ndarray, idx: np.ndarray, here_ne: tuple[float, float],
+                  config: FusionConfig, count: int, separation_m: float, taken: list[np.ndarray], first: np.ndarray
+                  ) -> list[np.ndarray]:
     """Greedy in score order (ties: grid order), vectorised: each pick is the best cell of ``idx`` still
     ``separation_m`` from every spot taken; thousands of landable cells would otherwise be walked one by one."""
     rows = idx // view.shape[1]                  # (np.divmod and np.hypot are several times slower)
     cols = idx - rows * view.shape[1]
     north = view.north0_m + (rows + 0.5) * view.cell_m
     east = view.east0_m + (cols + 0.5) * view.cell_m
-    score = np.minimum(view.clearance_m.ravel()[idx], config.clearance_saturation_m) \
+    score = np.minimum(clearance.ravel()[idx], config.clearance_saturation_m) \
         - config.travel_penalty_per_m * np.sqrt(np.square(north - here_ne[0]) + np.square(east - here_ne[1]))
     free = np.ones(idx.size, dtype=bool)
     for spot in taken:

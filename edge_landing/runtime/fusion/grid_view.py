@@ -45,6 +45,19 @@ class GridView:
             return np.asarray(self.sums[0][win] > 0)
         return np.asarray(self.seen[win] >= self.min_seen_weight)
 
+    def allowed_in(self, win: Window, min_horizontal_share: Optional[float] = None) -> np.ndarray:
+        """Cells of ``win`` the network does not object to: landable, or, given ``min_horizontal_share`` (an HVO
+        head whose class may stand in for the network's own flatness tests: fusion.confirm), observed with at
+        least that mean P(horizontal)."""
+        allowed: np.ndarray = self.landable[win]
+        if min_horizontal_share is not None:
+            # The share without horizontal_share_in's NaN fill (0/0 is NaN anyway, and NaN >= x is False): a
+            # third of its time on a box of most of the grid.
+            with np.errstate(invalid="ignore", divide="ignore"):
+                horizontal = self.sums[3][win] / self.sums[0][win] >= min_horizontal_share
+            allowed = allowed | (self.observed_in(win) & horizontal)
+        return allowed
+
     @property
     def shape(self) -> tuple[int, ...]:
         return self.landable.shape
