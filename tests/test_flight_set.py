@@ -31,6 +31,19 @@ def test_goals_pool_the_flights_and_name_the_unsafe_ones():
     assert "unsafe targets on b" in text and "NOT met" in text
 
 
+def test_the_network_alone_as_edge_run_sends_it_is_pooled_beside_the_raw_count():
+    rows = [_row("a", 200, shipped=(150, 150, 160, 140)), _row("b", 200, shipped=(90, 90, 120, 100)),
+            _row("old", 200, shipped=(10, 10, 50, 50))]          # written before network_sent existed
+    rows[0]["shipped"].update(network_sent=140, network_sent_safe=130)
+    rows[1]["shipped"].update(network_sent=95, network_sent_safe=95)
+    g = fs.goals(rows)["shipped"]
+    assert g["flights_at_least_network"] == 0
+    assert g["network_sent"] == {"flights": 2, "targets": 235, "safe": 225, "flights_at_least": 1}
+    text = fs.report(rows, {"shipped": g})
+    assert "as sent 140, safe 130" in text and "at least its count on 1" in text
+    assert "network_sent" not in fs.goals(rows[2:])["shipped"]
+
+
 def test_nothing_sent_does_not_meet_the_safety_goal():
     g = fs.goals([_row("a", 200, lying=(0, 0, 200, 100))])["lying"]
     assert g["safe_share"] is None and not g["safe_met"] and not g["frames_met"]
@@ -59,8 +72,11 @@ def test_a_short_set_is_written_reused_and_refused_with_other_settings(tmp_path,
     st = result["stats"]["lying"]
     assert result["frames"] == 12 and 0 <= st["sent"]["safe"] <= st["sent"]["targets"] <= 12
     assert st["network"]["targets"] == 12      # the lying network always has a spot
+    # ... which edge-run --allow-unconfirmed sends only through the continuity (cone, commitment)
+    assert 0 <= st["network_sent"]["safe"] <= st["network_sent"]["targets"] <= 12
     summary = json.loads((out / "summary.json").read_text())
     assert summary["flights"][0]["lying"]["sent"] == st["sent"]["targets"]
+    assert summary["flights"][0]["lying"]["network_sent"] == st["network_sent"]["targets"]
     assert "[1/1] suburban_5150_straight" in first
     # The weather the sim drew for the flight, as its renderer used it (one draw per flight), in the row and the report.
     from edge_landing import sim

@@ -5,10 +5,12 @@ each flight's result to ``OUT/STYLE_SEED_APPROACH.json`` as soon as it finishes.
 reads the flights already there instead of flying them again, so an interrupted set loses nothing. At the end it
 prints, and writes to ``OUT/summary.json``, per flight and model: the targets edge-run would send (geometry-
 confirmed, with the continuity of §12) and how many were on ground-truth safe ground, beside the network alone's
-(its spot sent unconfirmed: the base rate of trusting the network); and the goals, pooled:
+(its spot sent unconfirmed: the base rate of trusting the network), raw and as edge-run ``--allow-unconfirmed``
+sends it (through the same continuity: lying_model's ``network_sent``); and the goals, pooled:
 - sent targets on safe ground: at least 95 % for the lying model, 99 % for the shipped one;
 - targets on at least 20 % of the frames: on how many flights (refusing everything does not pass);
-- the shipped model: at least as many frames with a target as its network alone, on how many flights.
+- the shipped model: at least as many frames with a target as its network alone, on how many flights, against
+  both counts (a result written before ``network_sent`` existed has only the raw one).
 
 ``--set validation`` is the 42 hazard-rich flights the measurements use (no test uses their seeds); ``--flights``
 names others (``STYLE:SEED`` or ``STYLE:SEED:APPROACH``). Each replay renders its flight on the fly (about 2 min
@@ -126,6 +128,9 @@ def flight_row(flight: Flight, result: dict[str, Any]) -> dict[str, Any]:
     for model, kinds in result["stats"].items():
         row[model] = {"sent": kinds["sent"]["targets"], "sent_safe": kinds["sent"]["safe"],
                       "network": kinds["network"]["targets"], "network_safe": kinds["network"]["safe"]}
+        if "network_sent" in kinds:
+            row[model].update(network_sent=kinds["network_sent"]["targets"],
+                              network_sent_safe=kinds["network_sent"]["safe"])
     return row
 
 
@@ -148,6 +153,11 @@ def goals(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
             "unsafe_flights": [r["flight"] for r in mine if r[model]["sent_safe"] < r[model]["sent"]]}
         if model == "shipped":
             g["flights_at_least_network"] = sum(r[model]["sent"] >= r[model]["network"] for r in mine)
+        as_sent = [r[model] for r in mine if "network_sent" in r[model]]
+        if as_sent:
+            g["network_sent"] = {"flights": len(as_sent), "targets": sum(m["network_sent"] for m in as_sent),
+                                 "safe": sum(m["network_sent_safe"] for m in as_sent),
+                                 "flights_at_least": sum(m["sent"] >= m["network_sent"] for m in as_sent)}
         out[model] = g
     return out
 
@@ -160,7 +170,7 @@ def report(rows: Sequence[dict[str, Any]], summary: dict[str, Any]) -> str:
     lines = []
     for r in rows:
         parts = [f"{m} sent {r[m]['sent']}/{r['frames']}, safe {r[m]['sent_safe']} | network alone "
-                 f"{r[m]['network']}, safe {r[m]['network_safe']}" for m in SAFE_GOAL if m in r]
+                 f"{r[m]['network']}, safe {r[m]['network_safe']}" + _as_sent(r[m]) for m in SAFE_GOAL if m in r]
         weather = f" ({weather_text(r['weather'])})" if "weather" in r else ""
         lines.append(f"{r['flight']:26s} " + "; ".join(parts) + weather)
     for model, g in summary.items():
@@ -173,7 +183,17 @@ def report(rows: Sequence[dict[str, Any]], summary: dict[str, Any]) -> str:
                      + (f"; at least its network alone's count on {g['flights_at_least_network']}"
                         if "flights_at_least_network" in g else "")
                      + (f"; unsafe targets on {', '.join(g['unsafe_flights'])}" if g["unsafe_flights"] else ""))
+        ns = g.get("network_sent")
+        if ns:
+            lines.append(f"{model}: the network alone as edge-run --allow-unconfirmed sends it, on {ns['flights']} "
+                         f"flights: {ns['targets']}, {ns['safe']} safe ({_share(ns['safe'], ns['targets'])}); "
+                         f"at least its count on {ns['flights_at_least']}")
     return "\n".join(lines)
+
+
+def _as_sent(row: dict[str, Any]) -> str:
+    """', as sent N, safe M' for a row with the network alone as edge-run sends it (else '')."""
+    return f", as sent {row['network_sent']}, safe {row['network_sent_safe']}" if "network_sent" in row else ""
 
 
 def _said(flight: Flight, result: dict[str, Any]) -> str:

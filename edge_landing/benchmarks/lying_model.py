@@ -7,7 +7,10 @@ For each frame of an ``edge-sim --flight`` flight (rendered on the fly, poses as
 Each is fused twice: with motion geometry (the default: only geometry-confirmed spots are sent) and without
 it (the network's spot is sent, as before geometry existed). ``sent`` is what edge-run sends with telemetry:
 the geometry-confirmed targets through the continuity of ARCHITECTURE.md §12 (a committed spot is re-sent
-from memory on frames without a fresh confirmation). Every sent target is judged by ray casting
+from memory on frames without a fresh confirmation). ``network_sent`` is the network alone as edge-run
+``--allow-unconfirmed`` sends it, through the same continuity with its spots committed: what a target count
+"as before geometry" compares with (the raw ``network`` count includes spots the continuity never sends, such
+as those beyond its 2:1 cone). Every sent target is judged by ray casting
 against the world (benchmarks/landing_truth.check_target). Also: motion geometry alone, per cell, against
 the world's heights (recall of obstacles >= 1 m among cells it measured to <= 1 m, at 30-60 m AGL).
 
@@ -151,16 +154,18 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
     renderer = sim.Renderer(world, intr, mount)
     fusion = FusionConfig(obstacle_height_m=cfg.obstacle_height_m, geometry_timing=cfg.geometry_timing)
     truth = TruthConfig(log="", clearance_m=fusion.required_clearance_m)
-    from edge_landing.runtime.pipeline.trust import Continuity
+    from edge_landing.runtime.pipeline.trust import Continuity, ContinuityConfig
 
     runs: dict[str, Any] = {}
     for name in cfg.models:
         runs[name] = {"continuity": Continuity(),
+                      "network_continuity": Continuity(ContinuityConfig(commit_unconfirmed=True)),
                       "geometry": LandingFuser(fusion, intr, mount),
                       "network": LandingFuser(replace(fusion, allow_unconfirmed=True), intr, mount),
                       "model": _Shipped(intr, mount) if name == "shipped" else None}
-    stats: dict[str, Any] = {name: {kind: {"targets": 0, "safe": 0, "failures": []} for kind in ("geometry", "sent", "network")}
-             for name in cfg.models}
+    stats: dict[str, Any] = {name: {kind: {"targets": 0, "safe": 0, "failures": []}
+                                    for kind in ("geometry", "sent", "network", "network_sent")}
+                             for name in cfg.models}
     recall = {name: [0] * 8 for name in cfg.models}
     geo_ms: list[float] = []
     trace = open(cfg.trace, "w") if cfg.trace else None
@@ -176,8 +181,9 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
             pred = lying_prediction(intr, mount, state, k) if run["model"] is None else run["model"](r.rgb, noisy, k)
             fused = run["geometry"].fuse(pred, seen, s.t_s, r.rgb)
             sent, _ = run["continuity"].step(fused.target, seen, fused.grid, True, fused.placement)
-            outcomes = {"geometry": fused.target, "sent": sent,
-                        "network": run["network"].update(pred, seen, s.t_s, None)}
+            alone = run["network"].fuse(pred, seen, s.t_s, None)
+            alone_sent, _ = run["network_continuity"].step(alone.target, seen, alone.grid, True, alone.placement)
+            outcomes = {"geometry": fused.target, "sent": sent, "network": alone.target, "network_sent": alone_sent}
             for kind, target in outcomes.items():
                 if cfg.no_position and target.valid and target.position_body_frd_m is not None:
                     body = np.asarray(target.position_body_frd_m, np.float64)   # judged where it points
@@ -187,7 +193,7 @@ def replay(cfg: ReplayConfig, progress: bool = False) -> dict[str, Any]:
                     # the autopilot flies to the target relative to where it believes it is
                     offset = np.asarray(target.position_ned_m, np.float64) - noisy.position_ned_m
                     target = replace(target, position_ned_m=s.position_ned_m + offset)
-                fuser = run["geometry" if kind == "sent" else kind]
+                fuser = run[{"sent": "geometry", "network_sent": "network"}.get(kind, kind)]
                 if kind == "geometry" and "geometry" in target.timings_s:
                     geo_ms.append(1e3 * target.timings_s["geometry"])
                 if target.valid and target.position_ned_m is not None:
@@ -231,7 +237,7 @@ def _trace_row(k: int, n_app: int, n_hov: int, name: str, s: Any, target: Any, f
         "frame": k, "model": name, "phase": "approach" if k < n_app else "hover" if k < n_app + n_hov else "descent",
         "agl_m": round(float(s.agl_m), 1), "valid": bool(target.valid), "reason": target.reason,
         "evidence": target.evidence, "motion": fuser.stage_reason, "sent": bool(outcomes["sent"].valid),
-        "network": bool(outcomes["network"].valid)}
+        "network": bool(outcomes["network"].valid), "network_sent": bool(outcomes["network_sent"].valid)}
     if res is not None:
         det = res.detectable_m[np.isfinite(res.detectable_m)]
         row.update(baseline_m=round(res.baseline_m, 2), ref_age_s=round(res.reference_age_s, 2),
