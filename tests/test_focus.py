@@ -117,3 +117,26 @@ def test_the_window_may_go_to_ground_a_confirmation_would_accept_not_only_to_net
     np.testing.assert_allclose(off, roof_only)          # confirmation takes landable ground only: so does the window
     sums[3] = 0.0                                       # streets the network does not call horizontal
     np.testing.assert_allclose(focus_candidates(view, first, (0.0, 0.0), config, use_hvo=True), roof_only)
+
+
+def test_with_no_network_spot_the_window_still_goes_where_a_confirmation_could_come_from():
+    """A network with no landable disc of its own that calls the ground horizontal (the shipped model on urban
+    9749 once it was past its spot: 'no safe spot' on most frames): confirmation accepts geometry-clear horizontal
+    ground, so the window goes there instead of scanning blind. With nothing acceptable, None: the stage scans."""
+    from edge_landing.runtime.fusion.cells import clearance_from_mask
+
+    size = 40
+    sums = np.zeros((5, size, size))
+    sums[0], sums[1], sums[3] = 1.0, 2.0, 1.0          # every cell observed once, 2 m down, horizontal
+    landable = np.zeros((size, size), bool)             # ... and none landable by the network's own rules
+    view = GridView("ned", 1.0, 0.0, 0.0, 0.0, sums, landable, clearance_from_mask(landable, 1.0))
+    picks = focus_candidates(view, None, (20.0, 20.0), FusionConfig(), use_hvo=True)
+    assert picks is not None and picks.shape == (3, 3)
+    np.testing.assert_allclose(picks[:, 2], 2.0)        # each at its cell's level
+    for i in range(3):
+        assert 1.0 <= picks[i, 0] <= size - 1.0 and 1.0 <= picks[i, 1] <= size - 1.0   # inside the observed ground
+        for j in range(i):
+            assert np.hypot(*(picks[i, :2] - picks[j, :2])) >= 10.0
+    assert focus_candidates(view, None, (20.0, 20.0), FusionConfig(), use_hvo=False) is None   # no HVO head
+    sums[3] = 0.0                                       # nothing horizontal either
+    assert focus_candidates(view, None, (20.0, 20.0), FusionConfig(), use_hvo=True) is None

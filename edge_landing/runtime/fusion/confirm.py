@@ -104,7 +104,7 @@ class GeometryConfirmation:
 
     def run(self, view: Optional[GridView], image: Optional[np.ndarray], state: Optional[VehicleState],
             position: Optional[np.ndarray], t_cap: float,
-            focus: Optional[Callable[[], np.ndarray]]) -> Optional[GeometryView]:
+            focus: Optional[Callable[[], Optional[np.ndarray]]]) -> Optional[GeometryView]:
         """Run the motion stage on this frame (its window centred on one of the network's candidate spots
         ``focus()``, K×3 NED, the first preferred; see fusion.focus) when due, and return the evidence
         aligned with the fusion grid ``view`` (or None). ``focus`` is called only when the stage runs: the
@@ -158,13 +158,16 @@ class GeometryConfirmation:
         return self._known
 
     def _submit(self, image: np.ndarray, state: Optional[VehicleState], position: Optional[np.ndarray], agl: float,
-                t_cap: float, focus: Optional[Callable[[], np.ndarray]]) -> None:
+                t_cap: float, focus: Optional[Callable[[], Optional[np.ndarray]]]) -> None:
         """Hand one motion-stage update to the runner (inline: it runs now). ``focus`` is called by the job: the
         network's grid view it reads is a snapshot (fusion.grid), so a thread may read it."""
         if position is None and focus is not None:
             last, spots = self.motion.position_ned_m, focus()
             # The window follows the spot in the odometry's frame (a frame late is fine).
-            focus = (lambda: spots + last) if last is not None else (lambda: spots)
+            if spots is None:
+                focus = None
+            else:
+                focus = (lambda: spots + last) if last is not None else (lambda: spots)
         mount = state.mount_of(self.mount) if state else self.mount
         pos = position if position is not None else np.full(3, np.nan)   # the stage estimates it from the images
         pose = CameraPose.of(mount, state.attitude if state else Attitude(), pos, agl)
@@ -178,7 +181,7 @@ class GeometryConfirmation:
         frame = image.copy() if keep else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         self._runner.submit(partial(self._stage, frame, pose, t_cap, focus, position is not None, yaw))
 
-    def _stage(self, frame: np.ndarray, pose: CameraPose, t_cap: float, focus: Optional[Callable[[], np.ndarray]],
+    def _stage(self, frame: np.ndarray, pose: CameraPose, t_cap: float, focus: Optional[Callable[[], Optional[np.ndarray]]],
                has_position: bool, yaw_rad: Optional[float]) -> _StageOutcome:
         """The candidate spots, the motion stage's update and the mount check; touches only the stage's and the
         check's state."""

@@ -2,9 +2,10 @@
 
 The stage measures one window per run, centred on one of a few candidate spots: the network's own spot first,
 then the best-scoring other cells far enough apart, among the ground a confirmation may use (fusion.confirm:
-network-landable, or observed and horizontal by its HVO head). Drawn from network-landable cells alone, a
-network whose landable discs all lay on roofs (flow fails there) kept the window off the streets it called
-horizontal, and nothing was ever confirmed (docs/MEASUREMENTS.md, "Where the window may go"). Opt-in: a spot
+network-landable, or observed and horizontal by its HVO head); those others alone when the network has no
+spot. Drawn from network-landable cells alone, a network whose landable discs all lay on roofs (flow fails
+there) kept the window off the streets it called horizontal, and nothing was ever confirmed
+(docs/MEASUREMENTS.md, "Where the window may go"). Opt-in: a spot
 that geometry has already seen an obstacle beside (within the required clearance) cannot be confirmed by
 measuring it again, so neither it nor any other candidate is taken there: the window goes to ground geometry
 has not ruled out. Without this a network that keeps proposing a car or a roof's edge (a network trained
@@ -59,21 +60,22 @@ def ruled_out(view: GridView, known: KnownObstacles, radius_m: float) -> np.ndar
     return np.asarray(cv2.dilate(shifted, disc), bool)
 
 
-def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, float], config: FusionConfig,
+def focus_candidates(view: GridView, first: Optional[np.ndarray], here_ne: tuple[float, float], config: FusionConfig,
                      count: int = 3, separation_m: float = 10.0, known: Optional[KnownObstacles] = None,
-                     use_hvo: bool = False) -> np.ndarray:
+                     use_hvo: bool = False) -> Optional[np.ndarray]:
     """Up to ``count`` spots (K×3 NED or grid frame) for the motion stage's window: ``first`` (the network's
     spot), then the best-scoring others at least ``separation_m`` from those already taken, among the discs of
     ground a confirmation may use (:func:`acceptable_clearance`). The stage measures where a keyframe sees best
     (fusion.motion), so ground off the vehicle's line of flight gets measured too. With ``known`` obstacles (on
     the same frame as ``view``) and ``config.focus_skip_obstacles_m`` >= 0 (negative: off, the default), no
     candidate is taken within that many metres of one (0: on one), ``first`` included; when that leaves none,
-    ``first`` alone."""
+    ``first`` alone. ``first`` None (the network has no landable disc of its own): the others alone, or None
+    when there are none (the stage then scans)."""
     need, skip_m = config.required_clearance_m, config.focus_skip_obstacles_m
     blocked = None if known is None or skip_m < 0 else ruled_out(view, known, skip_m)
     out: list[np.ndarray] = []
-    cell = view.cell_of(float(first[0]), float(first[1]))
-    if blocked is None or cell is None or not blocked[cell]:
+    cell = None if first is None else view.cell_of(float(first[0]), float(first[1]))
+    if first is not None and (blocked is None or cell is None or not blocked[cell]):
         out.append(np.asarray(first, np.float64))
     clearance = acceptable_clearance(view, config, use_hvo)
     flat = clearance.ravel() >= need - 1e-6
@@ -81,8 +83,11 @@ def focus_candidates(view: GridView, first: np.ndarray, here_ne: tuple[float, fl
         flat &= ~blocked.ravel()
     idx = np.flatnonzero(flat)
     if idx.size and count > len(out):
-        out += _spread_picks(view, clearance, idx, here_ne, config, count - len(out), separation_m, out, first)
-    return np.stack(out) if out else np.asarray(first, np.float64)[None, :]
+        out += _spread_picks(view, clearance, idx, here_ne, config, count - len(out), separation_m, out,
+                             math.nan if first is None else float(first[2]))
+    if out:
+        return np.stack(out)
+    return None if first is None else np.asarray(first, np.float64)[None, :]
 
 
 def acceptable_clearance(view: GridView, config: FusionConfig, use_hvo: bool) -> np.ndarray:
@@ -96,10 +101,11 @@ def acceptable_clearance(view: GridView, config: FusionConfig, use_hvo: bool) ->
 
 
 def _spread_picks(view: GridView, clearance: np.ndarray, idx: np.ndarray, here_ne: tuple[float, float],
-                  config: FusionConfig, count: int, separation_m: float, taken: list[np.ndarray], first: np.ndarray
+                  config: FusionConfig, count: int, separation_m: float, taken: list[np.ndarray], down_m: float
                   ) -> list[np.ndarray]:
     """Greedy in score order (ties: grid order), vectorised: each pick is the best cell of ``idx`` still
-    ``separation_m`` from every spot taken; thousands of landable cells would otherwise be walked one by one."""
+    ``separation_m`` from every spot taken; thousands of landable cells would otherwise be walked one by one.
+    A pick's level is its cell's, else ``down_m`` (the network's spot's); a pick with neither is skipped."""
     rows = idx // view.shape[1]                  # (np.divmod and np.hypot are several times slower)
     cols = idx - rows * view.shape[1]
     north = view.north0_m + (rows + 0.5) * view.cell_m
@@ -115,6 +121,10 @@ def _spread_picks(view: GridView, clearance: np.ndarray, idx: np.ndarray, here_n
             break
         i = int(np.argmax(np.where(free, score, -np.inf)))
         down, _, _ = view.cell_stats(int(rows[i]), int(cols[i]))
-        picks.append(np.array([north[i], east[i], down if math.isfinite(down) else first[2]]))
+        level = down if math.isfinite(down) else down_m
+        if not math.isfinite(level):
+            free[i] = False
+            continue
+        picks.append(np.array([north[i], east[i], level]))
         free &= np.square(north - north[i]) + np.square(east - east[i]) >= separation_m * separation_m
     return picks

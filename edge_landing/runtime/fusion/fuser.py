@@ -265,9 +265,10 @@ class LandingFuser:
             if kept is not None and t_cap - kept.time_s > cfg.keep_target_s:
                 setattr(self, name, None)
         proposal = choose_spot(self._view, here, cfg, self._tracked)
-        focus = None if proposal is None else partial(
-            focus_candidates, self._view, np.array([proposal.north_m, proposal.east_m, proposal.down_m]), here, cfg,
-            known=self._confirm.known_obstacles(), use_hvo=hvo_h is not None)
+        # With no landable disc of the network's own, the window still goes to ground a confirmation may use.
+        focus = partial(focus_candidates, self._view,
+                        None if proposal is None else np.array([proposal.north_m, proposal.east_m, proposal.down_m]),
+                        here, cfg, known=self._confirm.known_obstacles(), use_hvo=hvo_h is not None)
         t_geo = time.perf_counter()
         geo = self._confirm.run(self._view, image, state, position, t_cap, focus)
         timings["geometry"] = time.perf_counter() - t_geo      # on this frame's path
